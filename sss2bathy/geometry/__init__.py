@@ -1,0 +1,41 @@
+"""Frames, attitude, isotemporal arcs and normals (paper eq. 1-3, 10).
+
+Pure, batched functions. Every function accepts torch tensors; numpy arrays are
+accepted too and numpy arrays are returned for them.
+"""
+
+from sss2bathy.geometry.frames import (
+    SIDE_PORT,
+    SIDE_SIGNS,
+    SIDE_STARBOARD,
+    arc_point,
+    arc_tangent,
+    attitude_to_rotation,
+    check_rotations,
+    rotation_to_attitude,
+)
+from sss2bathy.geometry.normals import (
+    grazing_angle,
+    head_plane_normal,
+    head_plane_normal_from_gradient,
+    incidence_angle,
+    vehicle_normal,
+    world_normal,
+)
+
+__all__ = [
+    "SIDE_PORT",
+    "SIDE_STARBOARD",
+    "SIDE_SIGNS",
+    "arc_point",
+    "arc_tangent",
+    "attitude_to_rotation",
+    "check_rotations",
+    "rotation_to_attitude",
+    "grazing_angle",
+    "head_plane_normal",
+    "head_plane_normal_from_gradient",
+    "incidence_angle",
+    "vehicle_normal",
+    "world_normal",
+]

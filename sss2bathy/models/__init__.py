@@ -1,0 +1,1 @@
+"""Plain ``nn.Module``s: normal CNN, SIREN, sensor models, intersection finder."""
