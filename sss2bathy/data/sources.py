@@ -39,7 +39,9 @@ def survey_folder(survey_cfg: Mapping[str, Any], data_dir: str | Path, force: bo
         return prepare_synthetic(cfg, Path(data_dir), force=force)
     if kind == "folder":
         if not cfg.get("path"):
-            raise ValueError("data.survey.path: expected a survey folder for kind 'folder', found none")
+            raise ValueError(
+                "data.survey.path: expected a survey folder for kind 'folder', found none"
+            )
         return Path(cfg["path"])
     if kind == "xtf":
         from sss2bathy.io.xtf_survey import prepare_xtf_survey

@@ -136,7 +136,5 @@ def arc_tangent(
 ) -> torch.Tensor:
     """``dp/dtheta`` of :func:`arc_point`: ``r R [0, -sigma sin(theta), -cos(theta)]``."""
     sigma = _side_sign(side, theta)
-    d = torch.stack(
-        [torch.zeros_like(theta), -sigma * torch.sin(theta), -torch.cos(theta)], dim=-1
-    )
+    d = torch.stack([torch.zeros_like(theta), -sigma * torch.sin(theta), -torch.cos(theta)], dim=-1)
     return range_m.unsqueeze(-1) * (R @ d.unsqueeze(-1)).squeeze(-1)

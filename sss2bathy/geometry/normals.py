@@ -68,8 +68,7 @@ def incidence_angle(
     """
     to_sonar = sonar - point
     cos = (normal_world * to_sonar).sum(-1) / (
-        torch.linalg.vector_norm(normal_world, dim=-1)
-        * torch.linalg.vector_norm(to_sonar, dim=-1)
+        torch.linalg.vector_norm(normal_world, dim=-1) * torch.linalg.vector_norm(to_sonar, dim=-1)
     ).clamp_min(1e-12)
     return torch.acos(cos.clamp(-1.0, 1.0))
 

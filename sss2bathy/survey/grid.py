@@ -120,14 +120,14 @@ class BathyGrid:
     def save_geotiff(self, path: str | Path) -> None:
         """Write a north-up single-band float32 GeoTIFF (NaN no-data), atomically."""
         import rasterio
-        from rasterio.transform import from_origin
+        from affine import Affine
 
         from sss2bathy.utils.atomic import atomic_path
 
         ny, nx = self.shape
         west = self.x0 - self.cell_size / 2
         north = self.y0 + (ny - 0.5) * self.cell_size
-        transform = from_origin(west, north, self.cell_size, self.cell_size)
+        transform = Affine(self.cell_size, 0.0, west, 0.0, -self.cell_size, north)
         with atomic_path(path) as tmp:
             with rasterio.open(
                 tmp,

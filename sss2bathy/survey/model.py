@@ -248,7 +248,9 @@ class Survey:
     lines: list[SidescanLine]
     grid: BathyGrid | None = None
     splits: dict[str, list[str]] = field(default_factory=dict)
-    origin: dict[str, Any] = field(default_factory=lambda: {"crs": None, "easting": 0.0, "northing": 0.0})
+    origin: dict[str, Any] = field(
+        default_factory=lambda: {"crs": None, "easting": 0.0, "northing": 0.0}
+    )
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -326,7 +328,9 @@ class Survey:
         try:
             sensor = SensorParams(**manifest["sensor"])
         except (TypeError, SurveyFormatError) as exc:
-            raise SurveyFormatError(manifest_path, "sensor", "valid sensor parameters", exc) from exc
+            raise SurveyFormatError(
+                manifest_path, "sensor", "valid sensor parameters", exc
+            ) from exc
         lines = [
             SidescanLine.load(folder / "lines" / f"{n}.npz", n, sensor) for n in manifest["lines"]
         ]

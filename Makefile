@@ -1,0 +1,91 @@
+# sss2bathy — every command a user needs. `make` (or `make help`) lists them.
+# ARGS is passed through to Hydra, e.g.  make siren-cnn-n2d ARGS="trainer.max_epochs=50 seed=2"
+
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+TORCH_SPEC ?= torch==2.13.0
+ARGS ?=
+SCALE ?= demo
+export SSS2BATHY_ROOT := $(CURDIR)
+export HYDRA_FULL_ERROR := 1
+
+.PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
+	siren-cnn-n2d siren-lambert siren-lambert-all d2 report paper sweep-example bench tb clean
+
+help: ## Show this help
+	@grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
+		awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q "$(TORCH_SPEC)"
+	$(BIN)/pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
+
+test: install ## Run the default (fast) test tier
+	$(BIN)/python -m pytest -q
+
+test-slow: install ## Run the slow tier (end-to-end runs, sweeps, DDP)
+	$(BIN)/python -m pytest -q -m slow
+
+lint: install ## ruff check + format check
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: install ## Apply ruff formatting and safe fixes
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+
+demo: install ## The whole paper pipeline at demo scale on the synthetic surveys, then the report
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) $(ARGS)
+
+prepare: install ## Generate + drape both synthetic surveys (cached)
+	$(BIN)/sss2bathy-prepare data/survey=synthetic_d1 scale=$(SCALE) $(ARGS)
+	$(BIN)/sss2bathy-prepare data/survey=synthetic_d2 scale=$(SCALE) $(ARGS)
+
+cnn: install ## Paper experiment: normal CNN (train d1, test d1 test lines + d2)
+	$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
+
+siren-direct-fit: install ## Paper experiment: SIREN fitted to the MBES grid directly
+	$(BIN)/sss2bathy-train experiment=siren_direct_fit scale=$(SCALE) $(ARGS)
+
+siren-gt-n2d: install ## Paper experiment: SIREN from draped MBES normals + altimeter
+	$(BIN)/sss2bathy-train experiment=siren_gt_n2d scale=$(SCALE) $(ARGS)
+
+siren-cnn-n2d: install ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,siren_cnn_n2d] $(ARGS)
+
+siren-lambert: install ## Paper experiment: Lambertian baseline, 12 test lines
+	$(BIN)/sss2bathy-train experiment=siren_lambert scale=$(SCALE) $(ARGS)
+
+siren-lambert-all: install ## Paper experiment: Lambertian baseline, all lines of sidescan
+	$(BIN)/sss2bathy-train experiment=siren_lambert_all scale=$(SCALE) $(ARGS)
+
+d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2)
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS)
+
+report: install ## Gather the latest run of each experiment into outputs/report/
+	$(BIN)/sss2bathy-report $(ARGS)
+
+paper: install ## Every experiment at scale=paper (GPU), then the report
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=paper $(ARGS)
+
+sweep-example: install ## A small Hydra multirun sweep (w_H x seed) on SIREN-GT-N2d
+	$(BIN)/sss2bathy-train -m experiment=siren_gt_n2d scale=$(SCALE) model.w_height=0.1,1,10 seed=1,2 $(ARGS)
+
+bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
+	$(BIN)/python -m sss2bathy.cli.bench $(ARGS)
+
+tb: install ## TensorBoard on outputs/
+	$(BIN)/tensorboard --logdir outputs/ --bind_all
+
+clean: ## Remove caches and outputs (keeps data/ and .venv)
+	rm -rf outputs/runs outputs/multiruns outputs/report outputs/bench .pytest_cache .ruff_cache
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
