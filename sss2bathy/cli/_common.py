@@ -102,6 +102,8 @@ def write_run_record(run_dir: Path, cfg: DictConfig, metrics: Mapping[str, Any])
         "scale": choices.get("scale"),
         "survey": choices.get("data/survey"),
         "seed": cfg.get("seed"),
+        "survey_name": OmegaConf.select(cfg, "data.survey.name"),
+        "data_dir": OmegaConf.select(cfg, "paths.data_dir"),
         "git_revision": git_revision(),
     }
     atomic_write_text(run_dir / "run_info.json", json.dumps(info, indent=2))

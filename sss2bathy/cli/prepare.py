@@ -1,0 +1,58 @@
+"""``sss2bathy-prepare``: generate or import a survey, drape it on its MBES grid, render figures.
+
+    sss2bathy-prepare data/survey=synthetic_d1 scale=demo
+    sss2bathy-prepare data/survey=xtf data.survey.files=/path/to/xtf data.survey.mbes_grid=mbes.tif
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from sss2bathy.cli._common import apply_extras, config_dir, setup_environment
+
+log = logging.getLogger("sss2bathy.prepare")
+
+
+def prepare(cfg: DictConfig) -> Path:
+    """Make the survey folder exist (cached), drape it if it has a grid; return the folder."""
+    from sss2bathy.config_validation import validate_config
+    from sss2bathy.data.sources import load_survey
+
+    validate_config(cfg)
+    survey, folder = load_survey(cfg.data.survey, cfg.paths.data_dir, force=cfg.get("force", False))
+    log.info("survey %s: %d lines at %s", survey.name, len(survey.lines), folder)
+    if cfg.get("drape", True) and survey.grid is not None:
+        from sss2bathy.draping import drape_survey
+        from sss2bathy.survey import mask_reason_counts
+
+        draped = drape_survey(survey, folder)
+        for name, d in draped.items():
+            log.info("draped %s: %s", name, mask_reason_counts(d.mask))
+    if cfg.get("render", True):
+        from sss2bathy.sim.render import render_terrain, render_waterfall
+
+        figures = folder / "figures"
+        if survey.grid is not None:
+            render_terrain(survey, figures / "terrain.png")
+        first = survey.lines[0]
+        render_waterfall(first, figures / f"waterfall_{first.name}.png")
+        log.info("figures in %s", figures)
+    return folder
+
+
+setup_environment()
+
+
+@hydra.main(version_base="1.3", config_path=config_dir(), config_name="prepare")
+def main(cfg: DictConfig) -> None:
+    apply_extras(cfg)
+    folder = prepare(cfg)
+    print(f"survey ready: {folder}")
+
+
+if __name__ == "__main__":
+    main()
