@@ -48,7 +48,9 @@ def parse_args(argv: list[str]) -> tuple[str, list[str], list[str]]:
             stages = [s.strip() for s in value.split(",") if s.strip()]
             unknown = sorted(set(stages) - set(STAGE_NAMES))
             if unknown:
-                raise SystemExit(f"stages: unknown stage(s) {unknown}; expected some of {STAGE_NAMES}")
+                raise SystemExit(
+                    f"stages: unknown stage(s) {unknown}; expected some of {STAGE_NAMES}"
+                )
         else:
             rest.append(arg)
     return scale, stages, rest
@@ -72,8 +74,11 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, cwd=root)
         times[name] = round(time.perf_counter() - t0, 1)
-        print(f"=== [{i}/{len(plan)}] {name}: {'done' if proc.returncode == 0 else 'FAILED'} "
-              f"in {times[name]:.0f} s", flush=True)
+        print(
+            f"=== [{i}/{len(plan)}] {name}: {'done' if proc.returncode == 0 else 'FAILED'} "
+            f"in {times[name]:.0f} s",
+            flush=True,
+        )
         if proc.returncode != 0:
             print(f"stage '{name}' failed (exit {proc.returncode}); stopping.", file=sys.stderr)
             return proc.returncode

@@ -1,0 +1,29 @@
+"""``sss2bathy-report``: gather the latest run of each experiment into ``outputs/report/``.
+
+sss2bathy-report                      # outputs/ -> outputs/report/
+sss2bathy-report --outputs /scratch/outputs --out /tmp/report
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+from sss2bathy.cli._common import project_root, setup_environment
+
+
+def main(argv: list[str] | None = None) -> None:
+    setup_environment()
+    parser = argparse.ArgumentParser(prog="sss2bathy-report", description=__doc__.split("\n")[0])
+    parser.add_argument("--outputs", default=str(project_root() / "outputs"))
+    parser.add_argument("--out", default=None, help="report folder (default OUTPUTS/report)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from sss2bathy.eval.report import build_report
+
+    path = build_report(args.outputs, args.out)
+    print(f"report: {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,380 @@
+"""The report: the paper's tables, PDF curves of signed errors, maps and zoomed panels.
+
+:func:`build_report` gathers the **latest finished run** of each experiment (a run folder
+under ``outputs/runs/<task>/`` or ``outputs/multiruns/<task>/.../`` holding ``metrics.json``
+and ``run_info.json``) and writes ``outputs/report/``:
+
+* ``index.md`` — every table and figure, with the run folders it came from;
+* ``table_cnn.{md,csv}`` — Table 2 (CNN, test lines of ``synthetic_d1`` and all of ``synthetic_d2``);
+* ``table_siren_d1.{md,csv}``, ``table_siren_d2.{md,csv}`` — Tables 3 and 4;
+* ``pdf_d1.png``, ``pdf_d2.png`` — probability densities of the signed height errors;
+* ``maps_d1.png``, ``maps_d2.png`` — bathymetry and HSV gradient, MBES beside every variant;
+* ``zoom_d1_<k>.png`` — the roughest areas, gradients of MBES / GT-N2d / CNN-N2d / Lambert
+  and the sidescan mosaic there.
+
+All SIREN variants of one survey are scored on the **same cells**: the intersection of the
+areas their runs scored (each run scores cells near the sonar tracks it used), so a variant
+that saw more lines is not judged on a larger, easier or harder area. Every table puts the
+paper's numbers beside ours, labelled as measured on the paper's own (real) data.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sss2bathy.eval.cnn_table import cnn_table_csv, cnn_table_markdown
+from sss2bathy.eval.paper_numbers import PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
+from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
+from sss2bathy.survey import BathyGrid
+from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+
+log = logging.getLogger("sss2bathy.report")
+
+# (task_name, label in the tables) — the order of the paper's tables and figure columns
+D1_VARIANTS = [
+    ("siren_direct_fit", "SIREN-Direct-Fit"),
+    ("siren_heights_only", "SIREN-Heights-only"),
+    ("siren_gt_n2d", "SIREN-GT-N2d"),
+    ("siren_cnn_n2d", "SIREN-CNN-N2d"),
+    ("siren_lambert_all", "SIREN-Lambert-all"),
+    ("siren_lambert", "SIREN-Lambert"),
+]
+D2_VARIANTS = [("d2_siren_cnn_n2d", "SIREN-CNN-N2d"), ("d2_siren_lambert", "SIREN-Lambert")]
+ZOOM_LABELS = ("SIREN-GT-N2d", "SIREN-CNN-N2d", "SIREN-Lambert")
+OURS = "ours (synthetic survey)"
+
+
+@dataclass
+class RunRecord:
+    """A finished run: its folder, ``run_info.json`` and ``metrics.json``."""
+
+    path: Path
+    info: dict[str, Any]
+    metrics: dict[str, float]
+
+
+@dataclass
+class MapRun:
+    """A finished SIREN run's map on the MBES grid of its survey."""
+
+    label: str
+    run: RunRecord
+    heights: np.ndarray
+    region: np.ndarray
+
+
+def find_latest_runs(outputs_dir: str | Path) -> dict[str, RunRecord]:
+    """``task_name -> latest finished run`` below ``outputs_dir`` (runs and multiruns).
+
+    A run is finished when its ``metrics.json`` exists; latest = newest ``metrics.json``.
+    """
+    outputs_dir = Path(outputs_dir)
+    latest: dict[str, tuple[float, RunRecord]] = {}
+    for metrics_path in outputs_dir.glob("*runs/**/metrics.json"):
+        run_dir = metrics_path.parent
+        info_path = run_dir / "run_info.json"
+        if not info_path.is_file():
+            continue
+        try:
+            info = json.loads(info_path.read_text())
+            metrics = json.loads(metrics_path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            log.warning("skipping unreadable run %s: %s", run_dir, exc)
+            continue
+        task = info.get("task_name")
+        stamp = metrics_path.stat().st_mtime
+        if task and (task not in latest or stamp > latest[task][0]):
+            latest[task] = (stamp, RunRecord(run_dir, info, metrics))
+    return {k: v[1] for k, v in latest.items()}
+
+
+def _mbes_grid(run: RunRecord) -> BathyGrid | None:
+    name, data_dir = run.info.get("survey_name"), run.info.get("data_dir")
+    if not name or not data_dir:
+        return None
+    path = Path(data_dir) / name / "grid.tif"
+    return BathyGrid.load_geotiff(path) if path.is_file() else None
+
+
+def load_map_run(label: str, run: RunRecord, like: BathyGrid) -> MapRun | None:
+    """The run's ``map.npz`` if it lies on ``like``'s geometry, else ``None`` (logged)."""
+    path = run.path / "map.npz"
+    if not path.is_file():
+        log.warning("%s: %s has no map.npz; left out of the maps", label, run.path)
+        return None
+    with np.load(path, allow_pickle=False) as d:
+        heights = d["heights"].astype(np.float64)
+        region = d["region"].astype(bool) if "region" in d.files else np.isfinite(heights)
+        geometry = (float(d["x0"]), float(d["y0"]), float(d["cell_size"]))
+    if heights.shape != like.shape or not np.allclose(geometry, (like.x0, like.y0, like.cell_size)):
+        log.warning("%s: map geometry differs from the MBES grid; left out", label)
+        return None
+    return MapRun(label, run, heights, region)
+
+
+def score_maps(maps: list[MapRun], truth: BathyGrid) -> tuple[dict[str, dict], np.ndarray]:
+    """Metrics of every map on the common region (intersection of their regions)."""
+    common = np.isfinite(truth.heights)
+    for m in maps:
+        if not m.label.endswith("Direct-Fit"):
+            common &= m.region
+    rows = {m.label: bathy_metrics(m.heights, truth.heights, truth.cell_size, common) for m in maps}
+    return rows, common
+
+
+def siren_table(rows: dict[str, dict], paper: dict[str, dict], title: str) -> tuple[str, str]:
+    """Markdown and CSV of a SIREN table (MAE, STD, gradient CS), ours then the paper's."""
+    md = [
+        f"# {title}",
+        "",
+        "MAE and STD of the signed height error (m), mean cosine similarity of the gradient "
+        "maps (higher is better), on the cells every variant scored. "
+        f"Rows labelled *{PAPER_LABEL}* are the published numbers on the paper's real data.",
+        "",
+        "| source | variant | MAE (m) | STD (m) | gradient CS | cells |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(("source", "variant", "mae", "std", "grad_cs", "n_cells"))
+    for label, m in rows.items():
+        md.append(
+            f"| {OURS} | {label} | {m['mae']:.3f} | {m['std']:.3f} | {m['grad_cs']:.3f} "
+            f"| {m['n_cells']} |"
+        )
+        writer.writerow((OURS, label, m["mae"], m["std"], m["grad_cs"], m["n_cells"]))
+    for label, m in paper.items():
+        md.append(
+            f"| {PAPER_LABEL} | {label} | {m['mae']:.3f} | {m['std']:.3f} | {m['grad_cs']:.3f} | |"
+        )
+        writer.writerow((PAPER_LABEL, label, m["mae"], m["std"], m["grad_cs"], ""))
+    return "\n".join(md) + "\n", buf.getvalue()
+
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def plot_pdfs(maps: list[MapRun], truth: BathyGrid, region: np.ndarray, path: Path) -> Path:
+    """Probability density of the signed errors of every variant (shared bins)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    errors = {m.label: signed_error(m.heights, truth.heights)[region] for m in maps}
+    errors = {k: v[np.isfinite(v)] for k, v in errors.items() if np.isfinite(v).any()}
+    lim = max((float(np.percentile(np.abs(v), 99.5)) for v in errors.values()), default=1.0)
+    bins = np.linspace(-lim, lim, 121)
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for label, err in errors.items():
+        density, edges = np.histogram(err, bins=bins, density=True)
+        ax.plot(
+            0.5 * (edges[1:] + edges[:-1]), density, label=f"{label} (mean {err.mean():+.3f} m)"
+        )
+    ax.axvline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("signed error  map − MBES (m)")
+    ax.set_ylabel("probability density")
+    ax.legend(fontsize=8)
+    ax.set_title("PDF of signed height errors")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _panels(
+    truth: BathyGrid,
+    maps: list[MapRun],
+    region: np.ndarray,
+    path: Path,
+    window: tuple[slice, slice] | None = None,
+    mosaic: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """Row 1 bathymetry, row 2 HSV gradient; columns MBES then each map (optional mosaic)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sss2bathy.eval.maps import gradient_hsv
+
+    rows_sl, cols_sl = window or (slice(None), slice(None))
+    sub = region[rows_sl, cols_sl]
+    h = truth.cell_size / 2
+    xs, ys = truth.x[cols_sl], truth.y[rows_sl]
+    extent = (xs[0] - h, xs[-1] + h, ys[0] - h, ys[-1] + h)
+    named = [("MBES", truth.heights)] + [(m.label, m.heights) for m in maps]
+    tx, ty = map_gradient(truth.heights, truth.cell_size)
+    vmax = float(np.nanpercentile(np.hypot(tx, ty)[region], 99)) if region.any() else None
+    zt = truth.heights[rows_sl, cols_sl][sub]
+    lo, hi = (float(np.nanmin(zt)), float(np.nanmax(zt))) if zt.size else (None, None)
+    ncol = len(named) + (mosaic is not None)
+    fig, axes = plt.subplots(2, ncol, figsize=(2.6 * ncol, 5.6), squeeze=False)
+    for j, (label, z) in enumerate(named):
+        shown = np.where(sub, z[rows_sl, cols_sl], np.nan)
+        axes[0, j].imshow(shown, origin="lower", extent=extent, cmap="viridis", vmin=lo, vmax=hi)
+        gx, gy = map_gradient(z, truth.cell_size)
+        rgb = gradient_hsv(gx[rows_sl, cols_sl], gy[rows_sl, cols_sl], vmax)
+        axes[1, j].imshow(np.where(sub[..., None], rgb, 0.0), origin="lower", extent=extent)
+        axes[0, j].set_title(label, fontsize=9)
+    if mosaic is not None:
+        axes[0, -1].imshow(mosaic[rows_sl, cols_sl], origin="lower", extent=extent, cmap="gray")
+        axes[0, -1].set_title("sidescan mosaic", fontsize=9)
+        axes[1, -1].axis("off")
+    for ax in axes.ravel():
+        ax.tick_params(labelsize=6)
+    fig.suptitle(title or "bathymetry (top) and gradient in HSV (bottom)", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def roughest_windows(
+    truth: BathyGrid, region: np.ndarray, size: int, count: int = 2
+) -> list[tuple[slice, slice]]:
+    """The ``count`` non-overlapping ``size``-cell windows inside ``region`` where the MBES
+    gradient norm has the largest mean (ridges, boulder fields)."""
+    from scipy.ndimage import uniform_filter
+
+    gx, gy = map_gradient(truth.heights, truth.cell_size)
+    rough = np.where(region, np.hypot(gx, gy), 0.0)
+    rough = np.nan_to_num(rough)
+    inside = uniform_filter(region.astype(float), size) > 0.95
+    score = np.where(inside, uniform_filter(rough, size), -np.inf)
+    windows = []
+    for _ in range(count):
+        if not np.isfinite(score).any():
+            break
+        r, c = np.unravel_index(int(np.argmax(score)), score.shape)
+        r0 = int(np.clip(r - size // 2, 0, truth.shape[0] - size))
+        c0 = int(np.clip(c - size // 2, 0, truth.shape[1] - size))
+        windows.append((slice(r0, r0 + size), slice(c0, c0 + size)))
+        score[max(0, r0 - size) : r0 + 2 * size, max(0, c0 - size) : c0 + 2 * size] = -np.inf
+    return windows
+
+
+def sidescan_mosaic(survey_dir: Path, like: BathyGrid, split: str = "test") -> np.ndarray | None:
+    """Mean normalised intensity of the draped valid bins of ``split`` per grid cell."""
+    try:
+        from sss2bathy.data.normalize import normalize_intensity
+        from sss2bathy.draping import drape_survey
+        from sss2bathy.survey import Survey
+
+        survey = Survey.load(survey_dir)
+        lines = [ln.name for ln in survey.split_lines(split)]
+        draped = drape_survey(survey, survey_dir, lines=lines)
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("no sidescan mosaic: %s", exc)
+        return None
+    total = np.zeros(like.shape)
+    count = np.zeros(like.shape)
+    for name in lines:
+        d, line = draped[name], survey.line(name)
+        valid = d.mask == 0
+        inten = normalize_intensity(line.intensity, valid)[valid]
+        pts = d.points[valid]
+        ix = np.rint((pts[:, 0] - like.x0) / like.cell_size).astype(int)
+        iy = np.rint((pts[:, 1] - like.y0) / like.cell_size).astype(int)
+        ok = (ix >= 0) & (ix < like.shape[1]) & (iy >= 0) & (iy < like.shape[0])
+        np.add.at(total, (iy[ok], ix[ok]), inten[ok])
+        np.add.at(count, (iy[ok], ix[ok]), 1)
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def _survey_section(
+    variants: list[tuple[str, str]],
+    runs: dict[str, RunRecord],
+    paper: dict[str, dict],
+    key: str,
+    title: str,
+    out: Path,
+    zoom: bool,
+) -> list[str]:
+    present = [(task, label) for task, label in variants if task in runs]
+    if not present:
+        return [f"## {title}", "", "No finished run of these experiments was found.", ""]
+    truth = _mbes_grid(runs[present[0][0]])
+    if truth is None:
+        return [f"## {title}", "", "The MBES grid of these runs was not found.", ""]
+    maps = [m for t, lbl in present if (m := load_map_run(lbl, runs[t], truth)) is not None]
+    if not maps:
+        return [f"## {title}", "", "None of these runs left a map.", ""]
+    rows, common = score_maps(maps, truth)
+    md, table_csv = siren_table(rows, paper, title)
+    atomic_write_text(out / f"table_siren_{key}.md", md)
+    atomic_write_text(out / f"table_siren_{key}.csv", table_csv)
+    plot_pdfs(
+        [m for m in maps if not m.label.endswith("Direct-Fit")],
+        truth,
+        common,
+        out / f"pdf_{key}.png",
+    )
+    _panels(truth, maps, common, out / f"maps_{key}.png")
+    lines = [f"## {title}", "", md.split("\n", 2)[2], f"![PDF of signed errors](pdf_{key}.png)", ""]
+    lines += [f"![maps](maps_{key}.png)", ""]
+    if zoom:
+        size = max(16, int(round(min(common.shape) * 0.3)))
+        survey_dir = Path(maps[0].run.info["data_dir"]) / maps[0].run.info["survey_name"]
+        mosaic = sidescan_mosaic(survey_dir, truth)
+        chosen = [m for m in maps if m.label in ZOOM_LABELS]
+        for k, window in enumerate(roughest_windows(truth, common, size)):
+            name = f"zoom_{key}_{k}.png"
+            _panels(truth, chosen, common, out / name, window, mosaic, f"roughest area {k + 1}")
+            lines += [f"![zoom {k + 1}]({name})", ""]
+    lines += ["Runs: " + ", ".join(f"{m.label}: `{m.run.path}`" for m in maps), ""]
+    return lines
+
+
+def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> Path:
+    """Write the report of the latest runs under ``outputs_dir``; return ``index.md``."""
+    outputs_dir = Path(outputs_dir)
+    out = Path(out_dir) if out_dir is not None else outputs_dir / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    runs = find_latest_runs(outputs_dir)
+    index = [
+        "# sss2bathy report",
+        "",
+        "The paper's experiments on the synthetic surveys (latest finished run of each). "
+        "The paper's numbers are shown beside ours, labelled: they were measured on its own "
+        "real data, so they orient, they do not compare like for like.",
+        "",
+    ]
+    from sss2bathy.modules.normal_cnn import table_rows_from_metrics
+
+    cnn = runs.get("cnn")
+    rows = table_rows_from_metrics(cnn.metrics) if cnn else {}
+    index += ["## CNN (Table 2)", ""]
+    if rows:
+        atomic_write_text(out / "table_cnn.md", cnn_table_markdown(rows))
+        atomic_write_text(out / "table_cnn.csv", cnn_table_csv(rows))
+        index += [cnn_table_markdown(rows).split("\n", 2)[2], f"Run: `{cnn.path}`", ""]
+    else:
+        index += ["No finished CNN run with test metrics was found.", ""]
+    index += _survey_section(
+        D1_VARIANTS, runs, SIREN_D1_TABLE, "d1", "SIREN on synthetic_d1 (Table 3)", out, True
+    )
+    index += _survey_section(
+        D2_VARIANTS, runs, SIREN_D2_TABLE, "d2", "SIREN on synthetic_d2 (Table 4)", out, False
+    )
+    times = outputs_dir / "report" / "stage_times.json"
+    if times.is_file():
+        stage = json.loads(times.read_text())
+        index += ["## Stage times", "", "| stage | seconds |", "|---|---:|"]
+        index += [f"| {k} | {v} |" for k, v in stage.get("seconds", {}).items()]
+        index.append("")
+    path = out / "index.md"
+    atomic_write_text(path, "\n".join(index))
+    return path
