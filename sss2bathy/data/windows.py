@@ -1,0 +1,509 @@
+"""Sidescan windows for the normal-estimation CNN (paper section "Training CNN").
+
+Each head of each line's waterfall is cut into windows of ``window_pings x window_bins``
+(64 x 512 in the paper), consecutive windows overlapping by ``overlap`` (75%) along pings
+and, when a line has more bins than a window, along bins too; the last window of each
+axis is flush with the end so every pixel is covered. Both heads are pooled (n_lat means
+the same on both by our convention). Windows whose fraction of valid pixels is below
+``min_valid_fraction`` are skipped and counted in the log.
+
+Augmentation (training only): an along-track flip (pings reversed), the paper's "other
+direction, other side" — a sonar heading the opposite way sees the same seabed from the
+other head, with the same n_lat (no sign change). It is drawn per sample per epoch by
+:class:`FlipShuffleSampler` from ``seed`` and the epoch number, so it does not depend on
+worker seeding.
+
+Batches are dicts (``B`` = batch size, ``H`` = window pings, ``W`` = window bins):
+
+* ``intensity [B,1,H,W] float32`` — normalised (:mod:`sss2bathy.data.normalize`);
+* ``n_lat [B,1,H,W] float32`` — draped head-plane normal, 0 at invalid pixels;
+* ``mask [B,1,H,W] bool`` — True = valid (mask 0 in the draping);
+* ``line [B] long`` — index into the dataset's ``line_names``; ``side [B] long`` (0 port,
+  1 starboard); ``ping_start``, ``bin_start [B] long`` — the window's origin in the
+  line's (unflipped) waterfall; ``flipped [B] bool`` — the window's pings are reversed
+  (un-reverse a prediction before stitching it back at ``ping_start``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.draping import DrapeConfig, DrapedLine, drape_survey
+from sss2bathy.survey import SidescanLine, Survey
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- geometry
+def window_starts(n: int, size: int, overlap: float = 0.75) -> np.ndarray:
+    """Start indices of windows of ``size`` covering ``range(n)``.
+
+    Consecutive windows are ``round(size * (1 - overlap))`` apart (at least 1); a last
+    window flush with the end is added when the stride does not land there.
+
+    >>> window_starts(10, 4, 0.5).tolist()
+    [0, 2, 4, 6]
+    >>> window_starts(11, 4, 0.5).tolist()
+    [0, 2, 4, 6, 7]
+    """
+    if not (isinstance(size, int | np.integer) and size >= 1):
+        raise ValueError(f"size: expected a positive integer, found {size!r}")
+    if not (isinstance(n, int | np.integer) and n >= size):
+        raise ValueError(f"n: expected an integer >= size ({size}), found {n!r}")
+    if not (0.0 <= overlap < 1.0):
+        raise ValueError(f"overlap: expected a fraction in [0, 1), found {overlap!r}")
+    stride = max(1, int(round(size * (1.0 - overlap))))
+    starts = np.arange(0, n - size + 1, stride, dtype=np.int64)
+    if starts[-1] != n - size:
+        starts = np.append(starts, np.int64(n - size))
+    return starts
+
+
+def line_windows(
+    n_pings: int, n_bins: int, window_pings: int, window_bins: int, overlap: float = 0.75
+) -> np.ndarray:
+    """All window origins ``(K, 2)`` int64 ``[ping_start, bin_start]`` covering a waterfall.
+
+    Nothing is skipped, so predictions of these windows can be stitched into a whole
+    line (per head). Raises if the line is smaller than a window.
+    """
+    if n_pings < window_pings:
+        raise ValueError(
+            f"n_pings: expected at least window_pings={window_pings} pings, found {n_pings}"
+        )
+    if n_bins < window_bins:
+        raise ValueError(
+            f"n_bins: expected at least window_bins={window_bins} bins, found {n_bins}"
+        )
+    p = window_starts(int(n_pings), int(window_pings), overlap)
+    b = window_starts(int(n_bins), int(window_bins), overlap)
+    return np.stack(np.meshgrid(p, b, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _window_sums(valid: np.ndarray, origins: np.ndarray, h: int, w: int) -> np.ndarray:
+    """``(2, K)`` valid-pixel counts of each window of each head (integral image)."""
+    v = np.transpose(valid, (1, 0, 2)).astype(np.int64)  # (2, P, B)
+    s = np.zeros((2, v.shape[1] + 1, v.shape[2] + 1), np.int64)
+    s[:, 1:, 1:] = v.cumsum(axis=1).cumsum(axis=2)
+    p, b = origins[:, 0], origins[:, 1]
+    return s[:, p + h, b + w] - s[:, p, b + w] - s[:, p + h, b] + s[:, p, b]
+
+
+# ----------------------------------------------------------------------------- dataset
+@dataclass
+class WindowLine:
+    """One line ready for windowing.
+
+    Attributes:
+        name: line name.
+        intensity: ``(P, 2, B)`` float32 normalised intensities.
+        n_lat: ``(P, 2, B)`` float32 draped n_lat, 0 where invalid.
+        valid: ``(P, 2, B)`` bool, True where the draping mask is 0.
+    """
+
+    name: str
+    intensity: np.ndarray
+    n_lat: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def from_draped(cls, line: SidescanLine, draped: DrapedLine) -> WindowLine:
+        """Normalise ``line``'s intensities over its valid bins and attach the draping."""
+        if draped.shape != line.intensity.shape:
+            raise ValueError(
+                f"draped: expected shape {line.intensity.shape} of line '{line.name}', "
+                f"found {draped.shape}"
+            )
+        valid = draped.valid & np.isfinite(draped.n_lat) & np.isfinite(line.intensity)
+        return cls(
+            name=line.name,
+            intensity=normalize_intensity(line.intensity, valid),
+            n_lat=np.where(valid, draped.n_lat, 0.0).astype(np.float32),
+            valid=valid,
+        )
+
+
+class SidescanWindowDataset(Dataset):
+    """Windows of both heads of a list of lines.
+
+    Items ``0 .. len-1`` are the windows as recorded; when ``flip_augment`` is True,
+    items ``len .. 2*len-1`` are the same windows flipped along track (what
+    :class:`FlipShuffleSampler` draws). Each item is a dict as in the module docstring,
+    without the batch dimension.
+
+    Attributes:
+        line_names: names of the lines, indexed by the ``line`` key.
+        index: ``(N, 4)`` int64 rows ``[line, side, ping_start, bin_start]``.
+        window_bins: the resolved window width (``B`` when configured as ``None``).
+        skipped: ``{"low_valid_windows": ..., "short_lines": ...}`` counts.
+    """
+
+    def __init__(
+        self,
+        lines: Sequence[WindowLine],
+        window_pings: int = 64,
+        window_bins: int | None = 512,
+        overlap: float = 0.75,
+        min_valid_fraction: float = 0.2,
+        flip_augment: bool = False,
+        name: str = "windows",
+    ) -> None:
+        if not lines:
+            raise ValueError(f"lines: expected at least one line for {name}, found none")
+        if not (isinstance(window_pings, int) and window_pings >= 1):
+            raise ValueError(f"window_pings: expected a positive integer, found {window_pings!r}")
+        if not (0.0 <= min_valid_fraction <= 1.0):
+            raise ValueError(
+                f"min_valid_fraction: expected a fraction in [0, 1], found {min_valid_fraction}"
+            )
+        n_bins = {ln.intensity.shape[2] for ln in lines}
+        if window_bins is None:
+            if len(n_bins) != 1:
+                raise ValueError(
+                    f"window_bins: None (= the lines' bin count) needs one bin count, "
+                    f"found {sorted(n_bins)} in {name}"
+                )
+            window_bins = n_bins.pop()
+        if not (isinstance(window_bins, int) and window_bins >= 1):
+            raise ValueError(f"window_bins: expected a positive integer, found {window_bins!r}")
+        for ln in lines:
+            if ln.intensity.shape[2] < window_bins:
+                raise ValueError(
+                    f"window_bins: expected at most the {ln.intensity.shape[2]} bins of line "
+                    f"'{ln.name}' ({name}), found window_bins={window_bins}; lower "
+                    "data.window_bins or set it to null to use the lines' bin count"
+                )
+        self.lines = list(lines)
+        self.line_names = [ln.name for ln in self.lines]
+        self.window_pings, self.window_bins = window_pings, window_bins
+        self.flip_augment = flip_augment
+        self.name = name
+        need = int(np.ceil(min_valid_fraction * window_pings * window_bins))
+        rows, low, short = [], 0, []
+        for li, ln in enumerate(self.lines):
+            P, _, B = ln.intensity.shape
+            if P < window_pings:
+                short.append(ln.name)
+                continue
+            origins = line_windows(P, B, window_pings, window_bins, overlap)
+            counts = _window_sums(ln.valid, origins, window_pings, window_bins)
+            keep = counts >= max(need, 1)
+            low += int((~keep).sum())
+            for side in (0, 1):
+                o = origins[keep[side]]
+                rows.append(
+                    np.column_stack(
+                        [np.full(len(o), li), np.full(len(o), side), o[:, 0], o[:, 1]]
+                    ).astype(np.int64)
+                )
+        self.index = np.concatenate(rows) if rows else np.zeros((0, 4), np.int64)
+        self.skipped = {"low_valid_windows": low, "short_lines": len(short)}
+        if short:
+            log.warning(
+                "%s: skipped %d line(s) shorter than window_pings=%d: %s",
+                name,
+                len(short),
+                window_pings,
+                short,
+            )
+        log.info(
+            "%s: %d windows of %dx%d from %d lines (skipped %d windows with < %.0f%% valid pixels)",
+            name,
+            len(self.index),
+            window_pings,
+            window_bins,
+            len(self.lines) - len(short),
+            low,
+            100 * min_valid_fraction,
+        )
+        if len(self.index) == 0:
+            raise ValueError(
+                f"{name}: zero windows of {window_pings}x{window_bins} from lines "
+                f"{self.line_names}: {low} windows had fewer than {need} valid pixels "
+                f"(min_valid_fraction={min_valid_fraction}) and {len(short)} line(s) were "
+                f"shorter than {window_pings} pings; check the draping masks, or lower "
+                "min_valid_fraction / the window size"
+            )
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
+        n = len(self.index)
+        flipped = item >= n
+        if item < 0 or item >= (2 * n if self.flip_augment else n):
+            raise IndexError(f"item: expected an index in [0, {n}) (x2 with flips), found {item}")
+        li, side, p0, b0 = (int(v) for v in self.index[item % n])
+        ln = self.lines[li]
+        win = (slice(p0, p0 + self.window_pings), side, slice(b0, b0 + self.window_bins))
+        arrays = [ln.intensity[win], ln.n_lat[win], ln.valid[win]]
+        if flipped:
+            arrays = [a[::-1] for a in arrays]
+        intensity, n_lat, valid = (torch.from_numpy(np.ascontiguousarray(a)) for a in arrays)
+        return {
+            "intensity": intensity.unsqueeze(0),
+            "n_lat": n_lat.unsqueeze(0),
+            "mask": valid.unsqueeze(0),
+            "line": torch.tensor(li, dtype=torch.long),
+            "side": torch.tensor(side, dtype=torch.long),
+            "ping_start": torch.tensor(p0, dtype=torch.long),
+            "bin_start": torch.tensor(b0, dtype=torch.long),
+            "flipped": torch.tensor(flipped, dtype=torch.bool),
+        }
+
+
+class FlipShuffleSampler(Sampler[int]):
+    """Shuffles ``n`` windows and flips each with probability 1/2 (item ``i + n``).
+
+    The permutation and the flips come from ``seed`` and the epoch number (incremented
+    at every ``iter``, or set with :meth:`set_epoch`), so a run is reproducible and
+    independent of data-loader workers.
+    """
+
+    def __init__(self, n: int, flip: bool = True, shuffle: bool = True, seed: int = 0) -> None:
+        if n < 1:
+            raise ValueError(f"n: expected at least one item, found {n}")
+        self.n, self.flip, self.shuffle, self.seed = n, flip, shuffle, seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self) -> Iterator[int]:
+        rng = np.random.default_rng([self.seed, self.epoch])
+        self.epoch += 1
+        order = rng.permutation(self.n) if self.shuffle else np.arange(self.n)
+        flips = rng.random(self.n) < 0.5 if self.flip else np.zeros(self.n, bool)
+        return iter((order + self.n * flips[order]).tolist())
+
+
+# -------------------------------------------------------------------------- datamodule
+def _to_dict(cfg: Any, name: str) -> dict[str, Any]:
+    """A plain dict from a mapping or an OmegaConf DictConfig (interpolations resolved)."""
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            cfg = OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        pass
+    if not isinstance(cfg, Mapping):
+        raise ValueError(f"{name}: expected a mapping, found {type(cfg).__name__}")
+    return dict(cfg)
+
+
+def _survey_dict(cfg: Any, name: str) -> dict[str, Any]:
+    out = _to_dict(cfg, name)
+    if "kind" not in out:
+        raise ValueError(f"{name}: expected a data/survey config with a 'kind' key, found {out}")
+    return out
+
+
+class SidescanWindowDataModule(pl.LightningDataModule):
+    """Windows for training, validating and testing the normal-estimation CNN.
+
+    Splits are by line: ``train`` = the survey's ``train`` split minus the validation
+    lines; ``val`` = ``max(1, round(val_fraction * n_train))`` training lines drawn with
+    ``seed``; ``test`` = the survey's ``test`` split. ``test_dataloader`` returns a list:
+    index 0 the survey's test split, then one loader per entry of ``test_surveys`` (all
+    of its lines), in order; ``test_set_names`` names them.
+
+    Args:
+        survey: the ``data/survey`` config (``kind``: synthetic | folder | xtf, ...).
+        data_dir: where surveys are generated/cached (``paths.data_dir``).
+        window_pings, window_bins: window size (``window_bins=None``: the lines' bins).
+        overlap: overlap of consecutive windows (fraction).
+        min_valid_fraction: windows with fewer valid pixels are skipped.
+        flip_augment: random along-track flips in training.
+        val_fraction: fraction of training lines held out for validation (at least one).
+        batch_size, num_workers, pin_memory: data-loader settings.
+        drape: :class:`DrapeConfig` fields (``None``: defaults).
+        test_surveys: extra ``data/survey`` configs tested on all their lines.
+        seed: seed of the validation split and of the training shuffle/flips.
+    """
+
+    def __init__(
+        self,
+        survey: Mapping[str, Any],
+        data_dir: str,
+        window_pings: int = 64,
+        window_bins: int | None = 512,
+        overlap: float = 0.75,
+        min_valid_fraction: float = 0.2,
+        flip_augment: bool = True,
+        val_fraction: float = 0.1,
+        batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        drape: Mapping[str, Any] | None = None,
+        test_surveys: Sequence[Mapping[str, Any]] | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        self.survey_cfg = _survey_dict(survey, "survey")
+        self.test_survey_cfgs = [
+            _survey_dict(c, f"test_surveys[{i}]") for i, c in enumerate(test_surveys or [])
+        ]
+        drape_map = None if drape is None else _to_dict(drape, "drape")
+        self.drape_cfg = DrapeConfig.coerce(drape_map)
+        if not (0.0 < val_fraction < 1.0):
+            raise ValueError(f"val_fraction: expected a fraction in (0, 1), found {val_fraction}")
+        if not (isinstance(batch_size, int) and batch_size >= 1):
+            raise ValueError(f"batch_size: expected a positive integer, found {batch_size!r}")
+        if not (isinstance(num_workers, int) and num_workers >= 0):
+            raise ValueError(f"num_workers: expected an integer >= 0, found {num_workers!r}")
+        if not (0.0 <= overlap < 1.0):
+            raise ValueError(f"overlap: expected a fraction in [0, 1), found {overlap!r}")
+        self.data_dir = str(data_dir)
+        self.window_pings, self.window_bins = window_pings, window_bins
+        self.overlap, self.min_valid_fraction = overlap, min_valid_fraction
+        self.flip_augment, self.val_fraction = flip_augment, val_fraction
+        self.batch_size, self.num_workers, self.pin_memory = batch_size, num_workers, pin_memory
+        self.seed = int(seed)
+        self.save_hyperparameters(
+            {
+                "survey": self.survey_cfg,
+                "window_pings": window_pings,
+                "window_bins": window_bins,
+                "overlap": overlap,
+                "min_valid_fraction": min_valid_fraction,
+                "flip_augment": flip_augment,
+                "val_fraction": val_fraction,
+                "batch_size": batch_size,
+                "drape": drape_map,
+                "test_surveys": self.test_survey_cfgs,
+                "seed": self.seed,
+            },
+            logger=False,
+        )
+        self.train_set: SidescanWindowDataset | None = None
+        self.val_set: SidescanWindowDataset | None = None
+        self.test_sets: list[SidescanWindowDataset] | None = None
+        self.test_set_names: list[str] = []
+        self.train_lines: list[str] = []
+        self.val_lines: list[str] = []
+
+    # ------------------------------------------------------------------ data
+    def _load(self, survey_cfg: Mapping[str, Any]) -> tuple[Survey, Path]:
+        from sss2bathy.data.sources import load_survey
+
+        return load_survey(survey_cfg, self.data_dir)
+
+    def _window_lines(self, survey: Survey, folder: Path, names: list[str]) -> list[WindowLine]:
+        draped = drape_survey(survey, folder, self.drape_cfg, lines=names)
+        return [WindowLine.from_draped(survey.line(n), draped[n]) for n in names]
+
+    def _dataset(self, lines: list[WindowLine], name: str, train: bool) -> SidescanWindowDataset:
+        return SidescanWindowDataset(
+            lines,
+            window_pings=self.window_pings,
+            window_bins=self.window_bins,
+            overlap=self.overlap,
+            min_valid_fraction=self.min_valid_fraction,
+            flip_augment=train and self.flip_augment,
+            name=name,
+        )
+
+    def prepare_data(self) -> None:
+        """Generate/import the surveys and drape them (both cached on disk)."""
+        for cfg in [self.survey_cfg, *self.test_survey_cfgs]:
+            survey, folder = self._load(cfg)
+            drape_survey(survey, folder, self.drape_cfg)
+
+    @staticmethod
+    def _split(survey: Survey, split: str) -> list[str]:
+        if split not in survey.splits:
+            raise ValueError(
+                f"survey '{survey.name}': expected a '{split}' split, found splits "
+                f"{sorted(survey.splits)}"
+            )
+        names = list(survey.splits[split])
+        if not names:
+            raise ValueError(f"survey '{survey.name}': split '{split}' has no lines")
+        return names
+
+    def setup(self, stage: str | None = None) -> None:
+        """Build the datasets of ``stage`` (fit/validate: train+val; test: test sets)."""
+        need_fit = stage in (None, "fit", "validate") and self.train_set is None
+        need_test = stage in (None, "test") and self.test_sets is None
+        if not (need_fit or need_test):
+            return
+        survey, folder = self._load(self.survey_cfg)
+        if need_fit:
+            train = self._split(survey, "train")
+            if len(train) < 2:
+                raise ValueError(
+                    f"survey '{survey.name}': expected at least 2 training lines to carve a "
+                    f"validation line from, found {len(train)}"
+                )
+            n_val = min(len(train) - 1, max(1, int(round(self.val_fraction * len(train)))))
+            pick = set(np.random.default_rng(self.seed).permutation(len(train))[:n_val].tolist())
+            self.val_lines = [n for i, n in enumerate(train) if i in pick]
+            self.train_lines = [n for i, n in enumerate(train) if i not in pick]
+            lines = self._window_lines(survey, folder, self.train_lines + self.val_lines)
+            by_name = {ln.name: ln for ln in lines}
+            self.train_set = self._dataset(
+                [by_name[n] for n in self.train_lines], f"{survey.name}:train", train=True
+            )
+            self.val_set = self._dataset(
+                [by_name[n] for n in self.val_lines], f"{survey.name}:val", train=False
+            )
+        if need_test:
+            test = self._split(survey, "test")
+            sets = [
+                self._dataset(
+                    self._window_lines(survey, folder, test), f"{survey.name}:test", False
+                )
+            ]
+            for cfg in self.test_survey_cfgs:
+                extra, extra_folder = self._load(cfg)
+                names = [ln.name for ln in extra.lines]
+                sets.append(
+                    self._dataset(
+                        self._window_lines(extra, extra_folder, names), f"{extra.name}:all", False
+                    )
+                )
+            self.test_sets = sets
+            self.test_set_names = [s.name for s in sets]
+
+    # ----------------------------------------------------------------- loaders
+    def _loader(self, ds: Dataset, sampler: Sampler | None = None) -> DataLoader:
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            sampler=sampler,
+            shuffle=False,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def _require(self, ds: Any, stage: str) -> Any:
+        if ds is None:
+            raise RuntimeError(f"call setup('{stage}') before asking for its data loader")
+        return ds
+
+    def train_dataloader(self) -> DataLoader:
+        ds = self._require(self.train_set, "fit")
+        sampler = FlipShuffleSampler(len(ds), flip=ds.flip_augment, seed=self.seed)
+        return self._loader(ds, sampler)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self._require(self.val_set, "fit"))
+
+    def test_dataloader(self) -> list[DataLoader]:
+        """``[survey test split, *test_surveys]`` loaders, named by ``test_set_names``."""
+        return [self._loader(ds) for ds in self._require(self.test_sets, "test")]

@@ -1,0 +1,101 @@
+"""Draping configuration (the ``data.drape`` config block)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+ENGINES = ("auto", "embree", "triangle")
+
+
+@dataclass(frozen=True)
+class DrapeConfig:
+    """How bins are georeferenced on the surface.
+
+    Per ping and head a fan of rays is cast in the head's plane. It is the union of
+
+    * ``rays_per_bin * B`` rays spaced uniformly in the slant range they would have on a
+      flat seafloor at the ping's reference altitude (dense where the range changes fast
+      with the angle, i.e. at grazing angles), and
+    * rays spaced at most ``fan_step_deg`` apart over the whole fan (so steep terrain,
+      the nadir region and the beam edges are covered whatever the terrain).
+
+    The fan spans depression angles ``[min(theta_min, 0) - beam_margin_deg,
+    max(theta_max + beam_margin_deg, theta_down + nadir_margin_deg)]`` where
+    ``theta_down`` is the angle pointing straight down in the world, so water-column
+    and out-of-beam bins are classified from real hits, not guessed.
+
+    Attributes:
+        rays_per_bin: range-uniform rays per range bin (oversampling factor, > 0).
+        fan_step_deg: largest angular step of the uniform part of the fan (degrees).
+        beam_margin_deg: extra fan beyond the beam's upper edge (degrees, >= 0).
+        nadir_margin_deg: extra fan past straight down (degrees, >= 0).
+        jump_check_bins: consecutive rays whose first-hit ranges differ by more than this
+            many bins (and hit different triangles) are checked for an occlusion with a
+            ray cast between them.
+        jump_tolerance: that middle ray's range may differ from the pair's mean range by
+            at most this fraction of their range difference; otherwise the pair spans an
+            occlusion (its bins are SHADOW unless seen elsewhere in the fan).
+        pings_per_chunk: pings intersected per ray-casting call (memory vs speed only).
+        engine: ``auto`` (embreex, falling back to trimesh's own intersector with a
+            warning), ``embree`` or ``triangle``.
+        mesh_path: a mesh file (PLY/OBJ/STL/...) to drape onto instead of the survey's
+            MBES grid; relative paths are taken relative to the survey folder.
+    """
+
+    rays_per_bin: float = 2.0
+    fan_step_deg: float = 0.2
+    beam_margin_deg: float = 5.0
+    nadir_margin_deg: float = 5.0
+    jump_check_bins: float = 1.0
+    jump_tolerance: float = 0.25
+    pings_per_chunk: int = 256
+    engine: str = "auto"
+    mesh_path: str | None = None
+
+    def __post_init__(self) -> None:
+        positive = ("rays_per_bin", "fan_step_deg", "jump_check_bins", "jump_tolerance")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"drape.{name}: expected a positive number, found {value!r}")
+        for name in ("beam_margin_deg", "nadir_margin_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and 0 <= value <= 45):
+                raise ValueError(f"drape.{name}: expected a number in [0, 45], found {value!r}")
+        if self.fan_step_deg > 5:
+            raise ValueError(
+                f"drape.fan_step_deg: expected <= 5 degrees, found {self.fan_step_deg}"
+            )
+        if not (isinstance(self.pings_per_chunk, int) and self.pings_per_chunk >= 1):
+            raise ValueError(
+                f"drape.pings_per_chunk: expected a positive integer, found {self.pings_per_chunk!r}"
+            )
+        if self.engine not in ENGINES:
+            raise ValueError(f"drape.engine: expected one of {ENGINES}, found {self.engine!r}")
+
+    @classmethod
+    def coerce(cls, cfg: DrapeConfig | Mapping[str, Any] | None) -> DrapeConfig:
+        """A config from ``None`` (defaults), a plain dict / DictConfig, or a config."""
+        if cfg is None:
+            return cls()
+        if isinstance(cfg, DrapeConfig):
+            return cfg
+        if not isinstance(cfg, Mapping):
+            raise ValueError(
+                f"drape: expected a mapping or DrapeConfig, found {type(cfg).__name__}"
+            )
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(cfg) - known)
+        if unknown:
+            raise ValueError(f"drape: unknown keys {unknown}; expected some of {sorted(known)}")
+        return cls(**dict(cfg.items()))
+
+    def cache_dict(self) -> dict[str, Any]:
+        """The fields that change results (excludes chunking and the intersector engine)."""
+        out = asdict(self)
+        out.pop("pings_per_chunk")
+        out.pop("engine")
+        return out
