@@ -1,0 +1,617 @@
+"""Bathymetry grids and meshes in: GeoTIFF / ESRI ASCII (rasterio), BAG (h5py), XYZ points, meshes.
+
+Every reader returns a :class:`~sss2bathy.survey.BathyGrid` (row 0 = south, ``x0, y0`` = centre
+of the SW cell, square cells). CRS handling, in one place (:func:`read_grid`):
+
+* the grid's CRS comes from the file (GeoTIFF/ASCII header, BAG ISO metadata) or, for files
+  without one (XYZ, meshes), from ``source_crs``;
+* the wanted CRS is ``target_crs``, or the survey origin's CRS when ``origin`` is given;
+* equivalent CRSs (a point moves < 1 mm between them) are relabelled, different ones are
+  reprojected (rasters: ``rasterio.warp.reproject``, bilinear; points and meshes: pyproj)
+  or, with ``on_crs_mismatch="error"``, refused with a message naming both CRSs;
+* a geographic grid (degrees) without a projected target is refused;
+* with ``origin`` the grid is shifted into the survey's local frame (x - easting,
+  y - northing).
+
+BAG (Bathymetric Attributed Grid, HDF5): ``BAG_root/elevation`` (no-data 1e6), row 0 is the
+**south** row; georeferenced from the SW corner point of the ISO metadata
+(``BAG_root/metadata``, ``gmd:cornerPoints``; the corner is a cell centre) and the
+``gmd:resolution`` of the row/column dimensions, never from the NE corner (one cell off in
+some producers' files); the CRS is the horizontal ``gmd:referenceSystemInfo`` code (WKT or
+EPSG).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sss2bathy.survey import BathyGrid, SurveyFormatError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MESH_SUFFIXES",
+    "RASTER_SUFFIXES",
+    "XYZ_SUFFIXES",
+    "crs_equivalent",
+    "grid_points",
+    "read_bag",
+    "read_grid",
+    "read_mesh",
+    "read_raster",
+    "read_xyz",
+    "shift_grid",
+]
+
+RASTER_SUFFIXES = (".tif", ".tiff", ".gtiff", ".asc")
+BAG_SUFFIXES = (".bag",)
+XYZ_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
+BAG_NODATA = 1.0e6
+CRS_MISMATCH = ("reproject", "error")
+
+
+# ----------------------------------------------------------------------------- CRS helpers
+def _crs(value: Any):
+    from pyproj import CRS
+
+    return CRS.from_user_input(value)
+
+
+def _crs_string(value: Any) -> str | None:
+    if value is None:
+        return None
+    c = _crs(value)
+    epsg = c.to_epsg(min_confidence=90)
+    return f"EPSG:{epsg}" if epsg else c.to_wkt()
+
+
+def _crs_name(value: Any) -> str:
+    return "none" if value is None else f"'{_crs(value).name}'"
+
+
+def crs_equivalent(a: Any, b: Any, x: float, y: float, tol_m: float = 1e-3) -> bool:
+    """True when CRSs ``a`` and ``b`` agree: equal, or the point ``(x, y)`` of ``a`` moves
+    less than ``tol_m`` when transformed to ``b`` (e.g. an EPSG code and its WKT with a null
+    ``TOWGS84``)."""
+    ca, cb = _crs(a), _crs(b)
+    if ca == cb:
+        return True
+    if ca.is_geographic != cb.is_geographic:
+        return False
+    from pyproj import Transformer
+
+    tx, ty = Transformer.from_crs(ca, cb, always_xy=True).transform(x, y)
+    if ca.is_geographic:
+        return abs(tx - x) * 111_000 < tol_m and abs(ty - y) * 111_000 < tol_m
+    return bool(math.hypot(tx - x, ty - y) < tol_m)
+
+
+def shift_grid(grid: BathyGrid, origin: Mapping[str, Any]) -> BathyGrid:
+    """The grid in the survey's local frame: ``x - easting, y - northing``, CRS = origin's."""
+    return BathyGrid(
+        grid.heights,
+        grid.x0 - float(origin.get("easting", 0.0)),
+        grid.y0 - float(origin.get("northing", 0.0)),
+        grid.cell_size,
+        origin.get("crs", grid.crs),
+    )
+
+
+# ----------------------------------------------------------------------------- rasters
+def _north_up_to_grid(
+    data: np.ndarray, transform, crs: Any, path: Any, cell_size: float | None
+) -> BathyGrid:
+    """North-up raster + affine (square, unrotated) -> BathyGrid (row 0 south)."""
+    if transform.b != 0 or transform.d != 0:
+        raise SurveyFormatError(path, "transform", "an unrotated grid", transform)
+    ny = data.shape[0]
+    cell = abs(transform.a)
+    if transform.e < 0:
+        heights = data[::-1]
+        y0 = transform.f + transform.e * (ny - 0.5)
+    else:
+        heights = data
+        y0 = transform.f + transform.e * 0.5
+    if transform.a < 0:
+        heights = heights[:, ::-1]
+        x0 = transform.c + transform.a * (data.shape[1] - 0.5)
+    else:
+        x0 = transform.c + transform.a * 0.5
+    return BathyGrid(np.ascontiguousarray(heights), x0, y0, cell, _crs_string(crs))
+
+
+def _warp(
+    data: np.ndarray,
+    transform,
+    src_crs: Any,
+    dst_crs: Any,
+    cell_size: float | None,
+) -> tuple[np.ndarray, Any]:
+    """Reproject / resample a north-up float raster (NaN no-data) to square ``cell_size``."""
+    from rasterio.transform import array_bounds
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+    h, w = data.shape
+    x_a, y_a, x_b, y_b = array_bounds(h, w, transform)
+    west, east = min(x_a, x_b), max(x_a, x_b)
+    south, north = min(y_a, y_b), max(y_a, y_b)
+    res = cell_size or abs(transform.a)  # keep the source cell size unless told otherwise
+    dst_transform, dw, dh = calculate_default_transform(
+        src_crs, dst_crs, w, h, west, south, east, north, resolution=res
+    )
+    out = np.full((dh, dw), np.nan, dtype=np.float32)
+    reproject(
+        source=data.astype(np.float32),
+        destination=out,
+        src_transform=transform,
+        src_crs=src_crs,
+        src_nodata=np.nan,
+        dst_transform=dst_transform,
+        dst_crs=dst_crs,
+        dst_nodata=np.nan,
+        resampling=Resampling.bilinear,
+    )
+    return out, dst_transform
+
+
+def _finish_raster(
+    data: np.ndarray,
+    transform,
+    crs: Any,
+    path: Path,
+    cell_size: float | None,
+    target_crs: Any,
+    on_crs_mismatch: str,
+) -> BathyGrid:
+    """Common tail of raster readers: CRS check, reprojection/resampling, grid."""
+    h, w = data.shape
+    cx, cy = transform.c + transform.a * w / 2, transform.f + transform.e * h / 2
+    dst = crs
+    if target_crs is not None:
+        if crs is None:
+            log.warning("%s: no CRS in the file; assuming the survey's %s", path, target_crs)
+            crs = target_crs
+        elif not crs_equivalent(crs, target_crs, cx, cy):
+            if on_crs_mismatch == "error":
+                raise SurveyFormatError(
+                    path,
+                    "crs",
+                    f"the survey's CRS {_crs_name(target_crs)} (or on_crs_mismatch: reproject)",
+                    _crs_name(crs),
+                )
+            log.info("%s: reprojecting from %s to %s", path, _crs_name(crs), _crs_name(target_crs))
+        else:
+            crs = target_crs
+        dst = target_crs
+    if dst is not None and _crs(dst).is_geographic:
+        raise SurveyFormatError(
+            path, "crs", "a projected CRS in metres (give target_crs)", _crs_name(dst)
+        )
+    square = math.isclose(abs(transform.a), abs(transform.e), rel_tol=1e-6)
+    same_cell = cell_size is None or math.isclose(abs(transform.a), cell_size, rel_tol=1e-9)
+    if (
+        crs is not None
+        and dst is not None
+        and (not crs_equivalent(crs, dst, cx, cy) or not square or not same_cell)
+    ):
+        data, transform = _warp(data, transform, crs, dst, cell_size)
+    elif not (square and same_cell):
+        if crs is None:
+            raise SurveyFormatError(
+                path, "transform", "square cells of cell_size (no CRS to resample in)", transform
+            )
+        data, transform = _warp(data, transform, crs, crs, cell_size)
+    return _north_up_to_grid(data, transform, dst, path, cell_size)
+
+
+def read_raster(
+    path: str | Path,
+    cell_size: float | None = None,
+    target_crs: Any = None,
+    *,
+    band: int = 1,
+    on_crs_mismatch: str = "reproject",
+) -> BathyGrid:
+    """A GeoTIFF or ESRI ASCII grid (any GDAL raster) band as a grid (heights, m, up)."""
+    import rasterio
+
+    path = Path(path)
+    try:
+        src_ctx = rasterio.open(path)
+    except Exception as exc:  # rasterio raises its own error types
+        raise SurveyFormatError(
+            path, "file", "a readable raster (GeoTIFF/ASCII grid)", exc
+        ) from exc
+    with src_ctx as src:
+        if not 1 <= band <= src.count:
+            raise SurveyFormatError(path, "band", f"a band in 1..{src.count}", band)
+        data = src.read(band).astype(np.float32)
+        if src.nodata is not None and np.isfinite(src.nodata):
+            data[data == np.float32(src.nodata)] = np.nan
+        transform = src.transform
+        crs = src.crs.to_wkt() if src.crs else None
+    return _finish_raster(data, transform, crs, path, cell_size, target_crs, on_crs_mismatch)
+
+
+# ----------------------------------------------------------------------------- BAG
+def _local(tag: str) -> str:
+    return tag.rsplit("}", 1)[-1]
+
+
+def _iter_local(root: ET.Element, name: str):
+    return (el for el in root.iter() if _local(el.tag) == name)
+
+
+def _text_of(root: ET.Element, name: str) -> str | None:
+    for el in _iter_local(root, name):
+        text = "".join(el.itertext()).strip()
+        if text:
+            return text
+    return None
+
+
+def _bag_metadata(path: Path, xml_bytes: bytes) -> tuple[float, float, float, float, Any]:
+    """``(sw_x, sw_y, res_x, res_y, crs)`` from the BAG ISO 19115/19139 metadata."""
+    try:
+        root = ET.fromstring(xml_bytes.rstrip(b"\x00"))
+    except ET.ParseError as exc:
+        raise SurveyFormatError(path, "BAG_root/metadata", "ISO XML metadata", exc) from exc
+    res: dict[str, float] = {}
+    for dim in _iter_local(root, "MD_Dimension"):
+        name = _text_of(dim, "MD_DimensionNameTypeCode")
+        value = _text_of(dim, "Measure")
+        if name and value:
+            res[name.lower()] = float(value)
+    if "row" not in res or "column" not in res:
+        raise SurveyFormatError(
+            path, "metadata resolution", "row and column gmd:resolution", sorted(res)
+        )
+    corners = None
+    for cp in _iter_local(root, "cornerPoints"):
+        text = _text_of(cp, "coordinates")
+        if text:
+            corners = [tuple(float(v) for v in pair.split(",")) for pair in text.split()]
+        else:
+            pos = [el.text for el in _iter_local(cp, "pos") if el.text]
+            corners = [tuple(float(v) for v in p.split()) for p in pos]
+        break
+    if not corners or len(corners[0]) < 2:
+        raise SurveyFormatError(path, "metadata cornerPoints", "a SW corner point", corners)
+    crs = None
+    for rs in _iter_local(root, "referenceSystemInfo"):
+        code = _text_of(rs, "code")
+        space = (_text_of(rs, "codeSpace") or "").upper()
+        if not code:
+            continue
+        candidate = f"EPSG:{code}" if space == "EPSG" and code.isdigit() else code
+        try:
+            c = _crs(candidate)
+        except Exception:  # pyproj.exceptions.CRSError and friends: not a CRS string
+            continue
+        if not c.is_vertical:
+            op = c.coordinate_operation if c.is_bound else None
+            if op is not None and not any(p.value for p in op.params):
+                c = c.source_crs  # a null TOWGS84 adds nothing
+            crs = _crs_string(c)
+            break
+    return corners[0][0], corners[0][1], res["column"], res["row"], crs
+
+
+def read_bag(
+    path: str | Path,
+    cell_size: float | None = None,
+    target_crs: Any = None,
+    *,
+    on_crs_mismatch: str = "reproject",
+) -> BathyGrid:
+    """A BAG's elevation layer as a grid (see the module docstring for the conventions)."""
+    import h5py
+    from rasterio.transform import from_origin
+
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            if "BAG_root/elevation" not in f or "BAG_root/metadata" not in f:
+                raise SurveyFormatError(
+                    path, "BAG_root", "elevation and metadata datasets", sorted(f.keys())
+                )
+            elev = f["BAG_root/elevation"][()].astype(np.float32)
+            xml = f["BAG_root/metadata"][()].tobytes()
+    except OSError as exc:
+        raise SurveyFormatError(path, "file", "a readable BAG (HDF5)", exc) from exc
+    if elev.ndim != 2:
+        raise SurveyFormatError(path, "BAG_root/elevation", "a 2D array", elev.shape)
+    sw_x, sw_y, res_x, res_y, crs = _bag_metadata(path, xml)
+    elev[~np.isfinite(elev) | (np.abs(elev) >= 0.5 * BAG_NODATA)] = np.nan
+    ny, nx = elev.shape
+    north_up = elev[::-1]  # BAG row 0 is the south row
+    transform = from_origin(sw_x - res_x / 2, sw_y + (ny - 0.5) * res_y, res_x, res_y)
+    return _finish_raster(north_up, transform, crs, path, cell_size, target_crs, on_crs_mismatch)
+
+
+# ----------------------------------------------------------------------------- points
+def grid_points(
+    xyz: np.ndarray, cell_size: float, statistic: str = "mean", crs: Any = None
+) -> BathyGrid:
+    """Grid ``(N, 3)`` points: cells centred on multiples of ``cell_size``; each cell holds the
+    mean (or median) height of its points, NaN where it has none."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] < 3 or xyz.shape[0] < 1:
+        raise ValueError(f"xyz: expected an (N, 3) array of points, found shape {xyz.shape}")
+    if not (cell_size and cell_size > 0):
+        raise ValueError(f"cell_size: expected a positive cell size (m), found {cell_size}")
+    if statistic not in ("mean", "median"):
+        raise ValueError(f"statistic: expected 'mean' or 'median', found {statistic!r}")
+    xyz = xyz[np.all(np.isfinite(xyz[:, :3]), axis=1)]
+    if xyz.shape[0] == 0:
+        raise ValueError("xyz: expected finite points, found none")
+    ix = np.round(xyz[:, 0] / cell_size).astype(np.int64)
+    iy = np.round(xyz[:, 1] / cell_size).astype(np.int64)
+    ix0, iy0 = ix.min(), iy.min()
+    nx, ny = max(int(ix.max() - ix0) + 1, 2), max(int(iy.max() - iy0) + 1, 2)
+    flat = (iy - iy0) * nx + (ix - ix0)
+    if statistic == "mean":
+        total = np.bincount(flat, weights=xyz[:, 2], minlength=nx * ny)
+        count = np.bincount(flat, minlength=nx * ny)
+        heights = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    else:
+        order = np.lexsort((xyz[:, 2], flat))
+        f_sorted, z_sorted = flat[order], xyz[order, 2]
+        starts = np.flatnonzero(np.r_[True, np.diff(f_sorted) != 0])
+        counts = np.diff(np.r_[starts, f_sorted.size])
+        lo = z_sorted[starts + (counts - 1) // 2]
+        hi = z_sorted[starts + counts // 2]
+        heights = np.full(nx * ny, np.nan)
+        heights[f_sorted[starts]] = 0.5 * (lo + hi)
+    return BathyGrid(
+        heights.reshape(ny, nx), ix0 * cell_size, iy0 * cell_size, cell_size, _crs_string(crs)
+    )
+
+
+def _transform_xy(xy: np.ndarray, src: Any, dst: Any) -> np.ndarray:
+    from pyproj import Transformer
+
+    tx, ty = Transformer.from_crs(_crs(src), _crs(dst), always_xy=True).transform(
+        xy[:, 0], xy[:, 1]
+    )
+    return np.stack([np.asarray(tx), np.asarray(ty)], axis=1)
+
+
+def _points_crs(
+    path: Path, xy: np.ndarray, source_crs: Any, target_crs: Any, on_crs_mismatch: str
+) -> tuple[np.ndarray, Any]:
+    """Move point coordinates into the target CRS (or refuse); returns (xy, crs)."""
+    if target_crs is None:
+        crs = source_crs
+    elif source_crs is None:
+        log.warning("%s: no CRS given for the file; assuming the survey's %s", path, target_crs)
+        crs = target_crs
+    else:
+        cx, cy = np.median(xy[:, 0]), np.median(xy[:, 1])
+        if not crs_equivalent(source_crs, target_crs, cx, cy):
+            if on_crs_mismatch == "error":
+                raise SurveyFormatError(
+                    path,
+                    "crs",
+                    f"the survey's CRS {_crs_name(target_crs)} (or on_crs_mismatch: reproject)",
+                    _crs_name(source_crs),
+                )
+            xy = _transform_xy(xy, source_crs, target_crs)
+        crs = target_crs
+    if crs is not None and _crs(crs).is_geographic:
+        raise SurveyFormatError(
+            path, "crs", "a projected CRS in metres (give target_crs)", _crs_name(crs)
+        )
+    return xy, crs
+
+
+def _numeric_header_lines(path: Path, delimiter: str | None, limit: int = 50) -> int:
+    with open(path, errors="replace") as f:
+        for i, text in enumerate(f):
+            if i >= limit:
+                break
+            tokens = [t for t in re.split(delimiter or r"\s+", text.strip()) if t]
+            if not tokens or text.lstrip().startswith("#"):
+                continue
+            try:
+                [float(t) for t in tokens[:3]]
+                return i
+            except ValueError:
+                continue
+    return 0
+
+
+def read_xyz(
+    path: str | Path,
+    cell_size: float | None,
+    target_crs: Any = None,
+    *,
+    source_crs: Any = None,
+    z_positive: str = "up",
+    statistic: str = "mean",
+    on_crs_mismatch: str = "reproject",
+) -> BathyGrid:
+    """An ASCII point file (``x y z`` per line; whitespace, comma or semicolon separated; header
+    lines and ``#`` comments skipped) gridded to ``cell_size``.
+
+    ``z_positive="down"`` reads depths (positive down) as heights ``-z``.
+    """
+    path = Path(path)
+    if cell_size is None:
+        raise ValueError(f"cell_size: expected a cell size (m) to grid the points of {path}")
+    if z_positive not in ("up", "down"):
+        raise ValueError(f"z_positive: expected 'up' or 'down', found {z_positive!r}")
+    with open(path, errors="replace") as f:
+        sample = "".join(f.readline() for _ in range(50))
+    delimiter = ";" if ";" in sample else ("," if "," in sample else None)
+    skip = _numeric_header_lines(path, delimiter)
+    try:
+        pts = np.loadtxt(
+            path, delimiter=delimiter, comments="#", skiprows=skip, usecols=(0, 1, 2), ndmin=2
+        )
+    except (ValueError, IndexError) as exc:
+        raise SurveyFormatError(path, "file", "numeric 'x y z' rows", exc) from exc
+    if z_positive == "down":
+        pts[:, 2] = -pts[:, 2]
+    xy, crs = _points_crs(path, pts[:, :2], source_crs, target_crs, on_crs_mismatch)
+    return grid_points(np.column_stack([xy, pts[:, 2]]), cell_size, statistic, crs)
+
+
+# ----------------------------------------------------------------------------- meshes
+def read_mesh(
+    path: str | Path,
+    cell_size: float | None = None,
+    target_crs: Any = None,
+    *,
+    source_crs: Any = None,
+    z_positive: str = "up",
+    on_crs_mismatch: str = "reproject",
+) -> BathyGrid:
+    """A triangle mesh (PLY/OBJ/STL/...) sampled on a grid by casting rays straight down at
+    the cell centres (the highest surface hit); NaN where a ray misses.
+
+    ``cell_size`` defaults to the median edge length. Rays are cast in coordinates centred on
+    the mesh (float32 ray tracers lose millimetres at UTM magnitudes).
+    """
+    import trimesh
+
+    path = Path(path)
+    if z_positive not in ("up", "down"):
+        raise ValueError(f"z_positive: expected 'up' or 'down', found {z_positive!r}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise SurveyFormatError(path, "file", "a readable triangle mesh", exc) from exc
+    if len(mesh.faces) == 0:
+        raise SurveyFormatError(path, "faces", "a mesh with triangles", 0)
+    verts = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    if z_positive == "down":
+        verts[:, 2] = -verts[:, 2]
+    verts[:, :2], crs = _points_crs(path, verts[:, :2], source_crs, target_crs, on_crs_mismatch)
+    if cell_size is None:
+        edges = np.linalg.norm(
+            verts[mesh.edges_unique[:, 0], :2] - verts[mesh.edges_unique[:, 1], :2], axis=1
+        )
+        cell_size = float(np.median(edges[edges > 0]))
+    if not cell_size > 0:
+        raise ValueError(f"cell_size: expected a positive cell size (m), found {cell_size}")
+    centre = np.r_[0.5 * (verts[:, :2].min(0) + verts[:, :2].max(0)), 0.0]
+    local = trimesh.Trimesh(vertices=verts - centre, faces=mesh.faces, process=False)
+    lo, hi = verts[:, :2].min(0), verts[:, :2].max(0)
+    ix0, iy0 = np.ceil(lo / cell_size).astype(np.int64)
+    ix1, iy1 = np.floor(hi / cell_size).astype(np.int64)
+    nx, ny = int(ix1 - ix0) + 1, int(iy1 - iy0) + 1
+    if nx < 2 or ny < 2:
+        raise SurveyFormatError(path, "extent", f"at least 2x2 cells of {cell_size} m", (ny, nx))
+    gx = (ix0 + np.arange(nx)) * cell_size
+    gy = (iy0 + np.arange(ny)) * cell_size
+    xx, yy = np.meshgrid(gx - centre[0], gy - centre[1])
+    top = verts[:, 2].max() - centre[2] + 1.0
+    origins = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, top)], axis=1)
+    dirs = np.tile([0.0, 0.0, -1.0], (origins.shape[0], 1))
+    locs, ray_idx, _ = local.ray.intersects_location(origins, dirs, multiple_hits=True)
+    heights = np.full(origins.shape[0], -np.inf)
+    np.maximum.at(heights, ray_idx, locs[:, 2])
+    heights = np.where(np.isfinite(heights), heights + centre[2], np.nan)
+    return BathyGrid(
+        heights.reshape(ny, nx), ix0 * cell_size, iy0 * cell_size, cell_size, _crs_string(crs)
+    )
+
+
+# ----------------------------------------------------------------------------- dispatch
+def read_grid(
+    path: str | Path,
+    cell_size: float | None = None,
+    target_crs: Any = None,
+    *,
+    origin: Mapping[str, Any] | None = None,
+    source_crs: Any = None,
+    on_crs_mismatch: str = "reproject",
+    band: int = 1,
+    z_positive: str = "up",
+    statistic: str = "mean",
+) -> BathyGrid:
+    """Read a bathymetry grid or mesh, dispatching on the file suffix.
+
+    Args:
+        path: ``.tif/.tiff/.asc`` (raster), ``.bag``, ``.xyz/.txt/.csv/.pts`` (points),
+            ``.ply/.obj/.stl/.off/.glb`` (mesh).
+        cell_size: output cell size (m); rasters are resampled when it differs from theirs;
+            required for points; meshes default to their median edge length.
+        target_crs: CRS of the output; default the origin's CRS, else the file's.
+        origin: survey origin ``{"crs", "easting", "northing"}``: the grid is checked against
+            (and brought into) its CRS, then shifted into the survey's local frame.
+        source_crs: CRS of point/mesh coordinates (files without a CRS of their own).
+        on_crs_mismatch: ``"reproject"`` or ``"error"`` (refuse a grid in another CRS).
+        band: raster band (GeoTIFF).
+        z_positive: ``"up"`` heights or ``"down"`` depths (points, meshes).
+        statistic: ``"mean"`` or ``"median"`` height per cell (points).
+
+    Returns:
+        :class:`BathyGrid`; in the survey's local frame when ``origin`` is given.
+    """
+    path = Path(path)
+    if on_crs_mismatch not in CRS_MISMATCH:
+        raise ValueError(
+            f"on_crs_mismatch: expected one of {CRS_MISMATCH}, found {on_crs_mismatch!r}"
+        )
+    if cell_size is not None and not cell_size > 0:
+        raise ValueError(f"cell_size: expected None or a positive size (m), found {cell_size}")
+    if origin is not None:
+        ocrs = origin.get("crs")
+        if target_crs is not None and ocrs is not None:
+            if not crs_equivalent(
+                target_crs, ocrs, origin.get("easting", 0.0), origin.get("northing", 0.0)
+            ):
+                raise ValueError(
+                    f"target_crs: expected the survey origin's CRS {_crs_name(ocrs)}, "
+                    f"found {_crs_name(target_crs)}"
+                )
+        target_crs = ocrs if ocrs is not None else target_crs
+    if not path.is_file():
+        raise SurveyFormatError(path, "file", "an existing grid or mesh file", "missing file")
+    suffix = path.suffix.lower()
+    if suffix in RASTER_SUFFIXES:
+        grid = read_raster(path, cell_size, target_crs, band=band, on_crs_mismatch=on_crs_mismatch)
+    elif suffix in BAG_SUFFIXES:
+        grid = read_bag(path, cell_size, target_crs, on_crs_mismatch=on_crs_mismatch)
+    elif suffix in XYZ_SUFFIXES:
+        grid = read_xyz(
+            path,
+            cell_size,
+            target_crs,
+            source_crs=source_crs,
+            z_positive=z_positive,
+            statistic=statistic,
+            on_crs_mismatch=on_crs_mismatch,
+        )
+    elif suffix in MESH_SUFFIXES:
+        grid = read_mesh(
+            path,
+            cell_size,
+            target_crs,
+            source_crs=source_crs,
+            z_positive=z_positive,
+            on_crs_mismatch=on_crs_mismatch,
+        )
+    else:
+        raise SurveyFormatError(
+            path,
+            "suffix",
+            f"one of {RASTER_SUFFIXES + BAG_SUFFIXES + XYZ_SUFFIXES + MESH_SUFFIXES}",
+            suffix,
+        )
+    if not np.isfinite(grid.heights).any():
+        raise SurveyFormatError(path, "heights", "at least one valid cell", "all no-data")
+    if origin is not None:
+        grid = shift_grid(grid, origin)
+    return grid

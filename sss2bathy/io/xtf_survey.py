@@ -1,0 +1,309 @@
+"""The ``data/survey=xtf`` source: XTF files (+ an optional MBES grid) -> a survey folder.
+
+``prepare_xtf_survey(cfg, data_dir)`` reads every XTF file of ``cfg.files`` into a line
+(named by the file stem), puts them in one local frame (the origin comes from the first
+file: UTM zone of its first position, or ``cfg.crs``), reads the MBES grid into the same
+frame (reprojecting it or refusing it, see :func:`sss2bathy.io.grids.read_grid`), and saves
+the survey to ``data_dir/<name>/`` atomically. The folder is reused while the config and
+the input files (by SHA-256) are unchanged.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import glob
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from sss2bathy.io.grids import read_grid, shift_grid
+from sss2bathy.io.xtf import SENSOR_KEYS, read_xtf
+from sss2bathy.survey import BathyGrid, Survey
+from sss2bathy.utils.atomic import file_sha256, stable_hash
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DEFAULTS", "IMPORT_VERSION", "prepare_xtf_survey", "resolve_files", "resolve_splits"]
+
+# Bump when the import changes what it writes, so cached folders are rebuilt.
+IMPORT_VERSION = 1
+
+DEFAULTS: dict[str, Any] = {
+    "kind": "xtf",
+    "name": "xtf_survey",
+    "files": None,
+    "mbes_grid": None,
+    "mbes_cell_size": None,
+    "mbes_crs": None,
+    "mbes_z_positive": "up",
+    "mbes_statistic": "mean",
+    "mbes_crs_mismatch": "reproject",
+    "n_bins": 512,
+    "tilt_deg": None,
+    "beam_width_deg": None,
+    "frequency_hz": None,
+    "sound_speed_mps": None,
+    "splits": None,
+    "crs": None,
+    "channel_pair": 0,
+    "port_far_first": True,
+    "max_jump_m": 200.0,
+    "max_speed_mps": 15.0,
+    "max_nav_gap_s": 30.0,
+    "missing_attitude": "error",
+    "min_first_return_m": 0.0,
+}
+
+
+def _plain(cfg: Any) -> dict[str, Any]:
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        pass
+    if not isinstance(cfg, Mapping):
+        raise ValueError(f"cfg: expected a mapping (data.survey), found {type(cfg).__name__}")
+    return dict(cfg)
+
+
+def resolve_files(files: Any) -> list[Path]:
+    """XTF paths from a folder, a glob pattern, a file, or a list of those (sorted, unique)."""
+    if files is None or files == "???":
+        raise ValueError(
+            "data.survey.files: expected a folder, glob or list of XTF files, found none"
+        )
+    items = [files] if isinstance(files, (str, Path)) else list(files)
+    found: list[Path] = []
+    for item in items:
+        p = Path(str(item)).expanduser()
+        if p.is_dir():
+            hits = [q for q in p.iterdir() if q.is_file() and q.suffix.lower() == ".xtf"]
+        elif p.is_file():
+            hits = [p]
+        else:
+            hits = [Path(h) for h in glob.glob(str(p), recursive=True) if Path(h).is_file()]
+        if not hits:
+            raise ValueError(f"data.survey.files: expected XTF files at {str(p)!r}, found none")
+        found.extend(hits)
+    return sorted({h.resolve() for h in found})
+
+
+def resolve_splits(splits: Mapping[str, Any] | None, names: list[str]) -> dict[str, list[str]]:
+    """Split -> line names; entries are names or glob patterns. Default: every line in ``test``."""
+    if not splits:
+        return {"test": list(names)}
+    out: dict[str, list[str]] = {}
+    for split, members in splits.items():
+        if isinstance(members, str):
+            members = [members]
+        chosen: list[str] = []
+        for pattern in members:
+            hits = [n for n in names if fnmatch.fnmatchcase(n, str(pattern))]
+            if not hits:
+                raise ValueError(
+                    f"data.survey.splits.{split}: expected line names or patterns matching "
+                    f"{names}, found {pattern!r} matching none"
+                )
+            chosen.extend(h for h in hits if h not in chosen)
+        out[str(split)] = [n for n in names if n in chosen]
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    def default(o: Any) -> Any:
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, (Path, np.ndarray)):
+            return str(o) if isinstance(o, Path) else o.tolist()
+        return str(o)
+
+    return json.loads(json.dumps(obj, default=default))
+
+
+def _validate(cfg: dict[str, Any]) -> None:
+    if cfg.get("kind") != "xtf":
+        raise ValueError(f"data.survey.kind: expected 'xtf', found {cfg.get('kind')!r}")
+    name = cfg.get("name")
+    if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
+        raise ValueError(f"data.survey.name: expected a folder name, found {name!r}")
+    n_bins = cfg.get("n_bins")
+    if n_bins is not None and (not isinstance(n_bins, int) or n_bins < 2):
+        raise ValueError(f"data.survey.n_bins: expected null or an integer >= 2, found {n_bins!r}")
+    for key in SENSOR_KEYS:
+        v = cfg.get(key)
+        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+            raise ValueError(f"data.survey.{key}: expected null or a number, found {v!r}")
+    unknown = sorted(set(cfg) - set(DEFAULTS))
+    if unknown:
+        log.warning("data.survey: ignoring keys unknown to the xtf source: %s", unknown)
+
+
+def _cached_hash(folder: Path) -> str | None:
+    manifest = folder / "survey.yaml"
+    if not manifest.is_file():
+        return None
+    try:
+        data = yaml.safe_load(manifest.read_text())
+    except yaml.YAMLError:
+        return None
+    if not isinstance(data, dict):
+        return None
+    return (data.get("metadata") or {}).get("source_hash")
+
+
+def _replace_folder(survey: Survey, folder: Path) -> None:
+    """Save into a temporary sibling folder, then swap it in (the old folder goes last)."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
+    try:
+        survey.save(tmp)
+        old = None
+        if folder.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=folder.parent))
+            os.rmdir(old)
+            os.replace(folder, old)
+        os.replace(tmp, folder)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _grid_coverage(grid: BathyGrid, lines: list) -> float:
+    xy = np.concatenate([ln.position[:, :2] for ln in lines])
+    return float(np.isfinite(grid.sample(xy[:, 0], xy[:, 1])).mean())
+
+
+def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool = False) -> Path:
+    """Import XTF files (and an optional MBES grid) into ``data_dir/<cfg.name>/``.
+
+    Args:
+        cfg: the ``data.survey`` config (see ``conf/data/survey/xtf.yaml`` and :data:`DEFAULTS`).
+        data_dir: root of the survey folders.
+        force: rebuild even when the cached folder matches.
+
+    Returns:
+        The survey folder (loadable with :meth:`Survey.load`).
+    """
+    user = _plain(cfg)
+    merged = {**DEFAULTS, **user}
+    _validate(merged)
+    files = resolve_files(merged["files"])
+    names = [f.stem for f in files]
+    if len(set(names)) != len(names):
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(
+            f"data.survey.files: expected unique file stems (line names), found {dupes}"
+        )
+    grid_path = Path(str(merged["mbes_grid"])).expanduser() if merged["mbes_grid"] else None
+    if grid_path is not None and not grid_path.is_file():
+        raise ValueError(
+            f"data.survey.mbes_grid: expected an existing file, found {str(grid_path)!r}"
+        )
+
+    folder = Path(data_dir) / merged["name"]
+    key_cfg = {k: v for k, v in merged.items() if k not in ("files", "mbes_grid")}
+    source_hash = stable_hash(
+        {
+            "version": IMPORT_VERSION,
+            "config": key_cfg,
+            "files": {str(f): file_sha256(f) for f in files},
+            "grid": file_sha256(grid_path) if grid_path else None,
+        }
+    )
+    if not force and _cached_hash(folder) == source_hash:
+        log.info("survey '%s': reusing %s (inputs unchanged)", merged["name"], folder)
+        return folder
+
+    read_kwargs = {
+        "channel_pair": int(merged["channel_pair"]),
+        "port_far_first": bool(merged["port_far_first"]),
+        "max_jump_m": float(merged["max_jump_m"]),
+        "max_speed_mps": float(merged["max_speed_mps"]),
+        "max_nav_gap_s": float(merged["max_nav_gap_s"]),
+        "missing_attitude": str(merged["missing_attitude"]),
+        "min_first_return_m": float(merged["min_first_return_m"]),
+    }
+    sensor = {k: merged[k] for k in SENSOR_KEYS}
+    origin: dict[str, Any] | None = None
+    lines, stats = [], {}
+    for path in files:
+        line, st = read_xtf(
+            path, merged["n_bins"], origin=origin, crs=merged["crs"], sensor=sensor, **read_kwargs
+        )
+        if origin is None:
+            origin = dict(st["origin"])
+            s = line.sensor
+            # Every line shares the first file's sensor (a survey has one sensor).
+            sensor = {
+                "tilt_deg": math.degrees(s.tilt_rad),
+                "beam_width_deg": math.degrees(s.beam_width_rad),
+                "frequency_hz": s.frequency_hz,
+                "sound_speed_mps": s.sound_speed_mps,
+            }
+        lines.append(line)
+        stats[line.name] = st
+        log.info("survey '%s': read %s (%d pings)", merged["name"], path.name, line.n_pings)
+    if origin is None:  # resolve_files never returns an empty list
+        raise ValueError("data.survey.files: expected at least one XTF file, found none")
+
+    grid = None
+    if grid_path is not None:
+        grid_kwargs = {
+            "cell_size": merged["mbes_cell_size"],
+            "source_crs": merged["mbes_crs"],
+            "on_crs_mismatch": merged["mbes_crs_mismatch"],
+            "z_positive": merged["mbes_z_positive"],
+            "statistic": merged["mbes_statistic"],
+        }
+        if origin.get("crs") is None:
+            grid = read_grid(grid_path, **grid_kwargs)
+            if grid.crs is not None:
+                log.info(
+                    "survey '%s': navigation in metres without a CRS; taking the grid's",
+                    merged["name"],
+                )
+                origin["crs"] = grid.crs
+            grid = shift_grid(grid, origin)
+        else:
+            grid = read_grid(grid_path, origin=origin, **grid_kwargs)
+        coverage = _grid_coverage(grid, lines)
+        if coverage == 0.0:
+            log.warning(
+                "survey '%s': the MBES grid covers none of the sonar positions (CRS mix-up?)",
+                merged["name"],
+            )
+        stats["_mbes_grid"] = {"file": str(grid_path), "pings_over_grid": coverage}
+
+    survey = Survey(
+        name=merged["name"],
+        lines=lines,
+        grid=grid,
+        splits=resolve_splits(merged["splits"], [ln.name for ln in lines]),
+        origin=origin,
+        metadata=_jsonable(
+            {
+                "source": "xtf",
+                "source_hash": source_hash,
+                "import_version": IMPORT_VERSION,
+                "files": {f.stem: str(f) for f in files},
+                "config": user,
+                "import_stats": stats,
+            }
+        ),
+    )
+    _replace_folder(survey, folder)
+    log.info("survey '%s': %d lines saved to %s", merged["name"], len(lines), folder)
+    return folder
