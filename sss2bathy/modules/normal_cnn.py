@@ -1,0 +1,426 @@
+"""LightningModule training the normal CNN, and its callbacks (validation images, CNN table).
+
+Batches are dicts (see ``sss2bathy.data`` windows): ``intensity [B,1,H,W] float32``,
+``n_lat [B,1,H,W] float32``, ``mask [B,1,H,W] bool`` (True = valid) plus ``line, side,
+ping_start, bin_start [B] long`` and ``flipped [B] bool`` (unused here).
+
+Logged keys: ``{stage}/loss`` and each loss term (``{stage}/loss_na``, ``{stage}/loss_tv``),
+``{stage}/{mae,rel,rmse,delta1,delta2,delta3}`` for ``train`` and ``val``; test metrics are
+``test/{name}/...`` with one ``name`` per test dataloader (``datamodule.test_set_names``).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from pytorch_lightning.loggers import TensorBoardLogger
+from torch import nn
+
+from sss2bathy.losses.normal import NormalLoss
+from sss2bathy.metrics.normal import METRIC_NAMES, NormalMetrics
+
+log = logging.getLogger(__name__)
+
+BATCH_KEYS = ("intensity", "n_lat", "mask")
+COMPILED_PREFIX = "_orig_mod."
+
+
+def describe_factory(factory: Callable[..., Any] | None) -> dict[str, Any] | None:
+    """Plain-value description of an optimizer / scheduler factory (a ``functools.partial``
+    from Hydra's ``_partial_: true``) for hparams: ``{"name": ..., **keywords}``."""
+    if factory is None:
+        return None
+    if isinstance(factory, functools.partial):
+        func = factory.func
+        out: dict[str, Any] = {"name": f"{func.__module__}.{func.__qualname__}"}
+        for key, value in factory.keywords.items():
+            out[key] = list(value) if isinstance(value, tuple) else value
+        return out
+    return {"name": getattr(factory, "__qualname__", type(factory).__name__)}
+
+
+def net_config(net: nn.Module) -> dict[str, Any] | None:
+    """``net.config()`` if the network can describe itself (e.g. ``NormalResNet``), else None."""
+    config = getattr(net, "config", None)
+    return dict(config()) if callable(config) else None
+
+
+class NormalCNNModule(pl.LightningModule):
+    """Trains a normal-estimation network on sidescan windows.
+
+    Args:
+        net: maps ``[B, 1, H, W]`` intensity to ``[B, 1, H, W]`` n_lat (``NormalResNet``).
+        loss: a :class:`~sss2bathy.losses.NormalLoss` or a mapping of its arguments.
+        optimizer: factory ``optimizer(params=...)`` (Hydra ``_partial_: true``), e.g. Adam
+            lr 2e-4, betas (0.9, 0.999) as in the paper.
+        scheduler: factory ``scheduler(optimizer=...)`` stepped every epoch, or None (the
+            paper's linear decay: ``LinearLR(start_factor=1, end_factor=0,
+            total_iters=max_epochs)``).
+        image_every_n_epochs: log validation images every N epochs (0: never); the images
+            come from :class:`NormalImageLogger`, added by :meth:`configure_callbacks`.
+        n_images: number of fixed validation windows shown.
+        compile: ``torch.compile`` the network for fitting.
+
+    The checkpoint's hyper-parameters hold plain values only (``net_config``: the network's
+    class path and arguments), so ``torch.load(weights_only=True)`` can read it and
+    :func:`sss2bathy.modules.predict.predict_normals` can rebuild the network.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        loss: NormalLoss | Mapping[str, Any],
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
+        image_every_n_epochs: int = 5,
+        n_images: int = 4,
+        compile: bool = False,
+    ) -> None:
+        super().__init__()
+        if not isinstance(net, nn.Module):
+            raise ValueError(f"net: expected a torch.nn.Module, found {type(net).__name__}")
+        if not callable(optimizer):
+            raise ValueError(
+                f"optimizer: expected a factory optimizer(params=...), found {optimizer!r}"
+            )
+        if scheduler is not None and not callable(scheduler):
+            raise ValueError(f"scheduler: expected a factory or None, found {scheduler!r}")
+        for name, value in (("image_every_n_epochs", image_every_n_epochs), ("n_images", n_images)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"{name}: expected an integer >= 0, found {value!r}")
+        self.net = net
+        self.loss_fn = NormalLoss.from_config(loss)
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.save_hyperparameters(
+            {
+                "net_config": net_config(net),
+                "loss": self.loss_fn.config(),
+                "optimizer": describe_factory(optimizer),
+                "scheduler": describe_factory(scheduler),
+                "image_every_n_epochs": image_every_n_epochs,
+                "n_images": n_images,
+                "compile": bool(compile),
+            },
+            logger=False,
+        )
+        self.train_metrics = NormalMetrics(prefix="train/")
+        self.val_metrics = NormalMetrics(prefix="val/")
+        self.test_metrics = nn.ModuleDict()
+        self.final_metrics: dict[str, float] = {}
+
+    # ----------------------------------------------------------------- model
+    def forward(self, intensity: torch.Tensor) -> torch.Tensor:
+        """``intensity [B, 1, H, W]`` -> n_lat ``[B, 1, H, W]``."""
+        return self.net(intensity)
+
+    def setup(self, stage: str) -> None:
+        already_compiled = hasattr(self.net, COMPILED_PREFIX.rstrip("."))
+        if self.hparams.compile and stage == "fit" and not already_compiled:
+            self.net = torch.compile(self.net)
+
+    @staticmethod
+    def check_batch(batch: Mapping[str, torch.Tensor]) -> None:
+        """Raise ``ValueError`` naming the key if ``batch`` lacks or mis-shapes a field."""
+        if not isinstance(batch, Mapping):
+            raise ValueError(f"batch: expected a dict with keys {BATCH_KEYS}, found {type(batch)}")
+        for key in BATCH_KEYS:
+            if key not in batch:
+                raise ValueError(f"batch: missing key '{key}'; found keys {sorted(batch)}")
+        shape = tuple(batch["intensity"].shape)
+        if len(shape) != 4 or shape[1] != 1:
+            raise ValueError(f"batch['intensity']: expected shape [B, 1, H, W], found {shape}")
+        for key in ("n_lat", "mask"):
+            if tuple(batch[key].shape) != shape:
+                raise ValueError(
+                    f"batch['{key}']: expected intensity's shape {shape}, "
+                    f"found {tuple(batch[key].shape)}"
+                )
+        if batch["mask"].dtype != torch.bool:
+            raise ValueError(
+                f"batch['mask']: expected dtype torch.bool, found {batch['mask'].dtype}"
+            )
+
+    def model_step(
+        self, batch: Mapping[str, torch.Tensor]
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """Forward + loss, shared by all stages: ``(loss terms dict, prediction [B,1,H,W])``."""
+        self.check_batch(batch)
+        pred = self(batch["intensity"])
+        return self.loss_fn(pred, batch["n_lat"], batch["mask"]), pred
+
+    def _log_losses(
+        self, stage: str, losses: Mapping[str, torch.Tensor], batch_size: int, **kw
+    ) -> None:
+        for key, value in losses.items():
+            self.log(f"{stage}/{key}", value, batch_size=batch_size, **kw)
+
+    # ----------------------------------------------------------------- stages
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        losses, pred = self.model_step(batch)
+        n = int(batch["intensity"].shape[0])
+        self._log_losses("train", losses, n, on_step=True, on_epoch=True, prog_bar=False)
+        self.train_metrics.update(pred, batch["n_lat"], batch["mask"])
+        self.log_dict(self.train_metrics, on_step=False, on_epoch=True, batch_size=n)
+        return losses["loss"]
+
+    def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
+        losses, pred = self.model_step(batch)
+        n = int(batch["intensity"].shape[0])
+        self._log_losses("val", losses, n, on_step=False, on_epoch=True, sync_dist=True)
+        self.val_metrics.update(pred, batch["n_lat"], batch["mask"])
+        self.log_dict(self.val_metrics, on_step=False, on_epoch=True, batch_size=n, prog_bar=True)
+
+    def test_set_name(self, dataloader_idx: int) -> str | None:
+        """Name of a test dataloader: ``datamodule.test_set_names[idx]`` when the datamodule
+        names each loader; else None for a single loader, ``dataloader_{idx}``."""
+        dm = getattr(self.trainer, "datamodule", None)
+        names = getattr(dm, "test_set_names", None)
+        n_loaders = len(self.trainer.num_test_batches or [0])
+        if names is not None and len(names) == n_loaders:
+            return str(names[dataloader_idx])
+        return None if n_loaders == 1 else f"dataloader_{dataloader_idx}"
+
+    def on_test_start(self) -> None:
+        # one metric collection per test dataloader, named by this run's datamodule
+        self.test_metrics = nn.ModuleDict()
+
+    def test_step(
+        self, batch: Mapping[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0
+    ) -> None:
+        losses, pred = self.model_step(batch)
+        n = int(batch["intensity"].shape[0])
+        name = self.test_set_name(dataloader_idx)
+        prefix = "test/" if name is None else f"test/{name}/"
+        key = f"dataloader_{dataloader_idx}"
+        if key not in self.test_metrics:
+            self.test_metrics[key] = NormalMetrics(prefix=prefix).to(self.device)
+        metrics = self.test_metrics[key]
+        for term, value in losses.items():
+            self.log(
+                f"{prefix}{term}", value, batch_size=n, add_dataloader_idx=False, sync_dist=True
+            )
+        metrics.update(pred, batch["n_lat"], batch["mask"])
+        # created after Lightning indexed the module's metrics: name their attribute path
+        for base, metric in metrics.items(keep_base=True, copy_state=False):
+            self.log(
+                f"{prefix}{base}",
+                metric,
+                on_step=False,
+                on_epoch=True,
+                batch_size=n,
+                add_dataloader_idx=False,
+                metric_attribute=f"test_metrics.{key}.{base}",
+            )
+
+    # ----------------------------------------------------------------- optim
+    def configure_optimizers(self) -> Any:
+        optimizer = self.optimizer_factory(params=self.parameters())
+        if self.scheduler_factory is None:
+            return optimizer
+        scheduler = self.scheduler_factory(optimizer=optimizer)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"},
+        }
+
+    def configure_callbacks(self) -> list[pl.Callback]:
+        if self.hparams.image_every_n_epochs and self.hparams.n_images:
+            return [NormalImageLogger(self.hparams.image_every_n_epochs, self.hparams.n_images)]
+        return []
+
+    # ----------------------------------------------------------------- hparams
+    def _final_metrics(self) -> dict[str, float]:
+        out = {}
+        for key, value in self.trainer.callback_metrics.items():
+            if key.startswith(("val/", "test/")):
+                out[key] = float(value)
+        return out
+
+    def _log_hparams_with_metrics(self) -> None:
+        # test runs replace trainer.callback_metrics: keep the validation values of the fit
+        self.final_metrics.update(self._final_metrics())
+        params: dict[str, Any] = {"model": dict(self.hparams)}
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is not None and getattr(dm, "hparams", None):
+            params["data"] = dict(dm.hparams)
+        for logger in self.loggers:
+            logger.log_hyperparams(params, metrics=self.final_metrics)
+
+    def on_fit_start(self) -> None:
+        self.final_metrics = {}
+
+    def on_fit_end(self) -> None:
+        """hparams with the last validation metrics (HPARAMS tab of a run without test)."""
+        self._log_hparams_with_metrics()
+
+    def on_test_end(self) -> None:
+        """hparams with validation and test metrics (overrides the fit-end record)."""
+        self._log_hparams_with_metrics()
+
+
+# --------------------------------------------------------------------- images
+def render_window_panel(
+    intensity: np.ndarray,
+    n_lat_gt: np.ndarray,
+    n_lat_pred: np.ndarray,
+    mask: np.ndarray,
+    normal_limit: float,
+    gap: int = 2,
+) -> np.ndarray:
+    """The paper's CNN figure for one window: rows input / ground truth / prediction / |error|.
+
+    Args:
+        intensity, n_lat_gt, n_lat_pred: ``(H, W)`` float arrays.
+        mask: ``(H, W)`` bool, True = valid; invalid pixels are black in every row.
+        normal_limit: n_lat colour range ``[-normal_limit, normal_limit]`` (``RdBu_r``);
+            the error row spans ``[0, normal_limit]`` (``magma``).
+        gap: white rows between panels.
+
+    Returns:
+        ``(4 H + 3 gap, W, 3)`` uint8 RGB image.
+    """
+    from matplotlib import colormaps
+
+    shape = np.shape(intensity)
+    for name, arr in (("n_lat_gt", n_lat_gt), ("n_lat_pred", n_lat_pred), ("mask", mask)):
+        if np.shape(arr) != shape or len(shape) != 2:
+            raise ValueError(f"{name}: expected a 2D array of shape {shape}, found {np.shape(arr)}")
+    if not normal_limit > 0:
+        raise ValueError(f"normal_limit: expected a positive number, found {normal_limit!r}")
+    mask = np.asarray(mask, dtype=bool)
+    inten = np.asarray(intensity, dtype=np.float64)
+    valid_i = inten[mask & np.isfinite(inten)]
+    lo, hi = np.percentile(valid_i, [1, 99]) if valid_i.size else (0.0, 1.0)
+    gray = np.clip((inten - lo) / max(hi - lo, 1e-12), 0, 1)
+    rows = [
+        colormaps["gray"](gray)[..., :3],
+        colormaps["RdBu_r"]((np.asarray(n_lat_gt) + normal_limit) / (2 * normal_limit))[..., :3],
+        colormaps["RdBu_r"]((np.asarray(n_lat_pred) + normal_limit) / (2 * normal_limit))[..., :3],
+        colormaps["magma"](np.abs(np.asarray(n_lat_pred) - n_lat_gt) / normal_limit)[..., :3],
+    ]
+    spacer = np.ones((gap, shape[1], 3))
+    parts = []
+    for i, rgb in enumerate(rows):
+        rgb = np.where(mask[..., None], np.nan_to_num(rgb), 0.0)
+        parts += [rgb] if i == 0 else [spacer, rgb]
+    return (np.concatenate(parts, axis=0) * 255).round().astype(np.uint8)
+
+
+class NormalImageLogger(pl.Callback):
+    """Every ``every_n_epochs`` validation epochs, logs input / GT / prediction / error images
+    of ``n_images`` fixed validation windows to TensorBoard (``val_images/window_{i}``).
+
+    The windows are the ones with the most valid pixels in the first validation batch (taken
+    once, so the same windows are shown every time). Nothing happens without a
+    ``TensorBoardLogger``.
+    """
+
+    def __init__(self, every_n_epochs: int = 5, n_images: int = 4) -> None:
+        if not isinstance(every_n_epochs, int) or every_n_epochs < 1:
+            raise ValueError(f"every_n_epochs: expected an integer >= 1, found {every_n_epochs!r}")
+        if not isinstance(n_images, int) or n_images < 1:
+            raise ValueError(f"n_images: expected an integer >= 1, found {n_images!r}")
+        self.every_n_epochs = every_n_epochs
+        self.n_images = n_images
+        self.windows: dict[str, torch.Tensor] | None = None
+        self.normal_limit = 0.5
+
+    @staticmethod
+    def _tensorboard(trainer: pl.Trainer) -> TensorBoardLogger | None:
+        return next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
+
+    def on_validation_batch_end(
+        self,
+        trainer: pl.Trainer,
+        pl_module: pl.LightningModule,
+        outputs: Any,
+        batch: Mapping[str, torch.Tensor],
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
+        if self.windows is not None or self._tensorboard(trainer) is None:
+            return
+        valid = batch["mask"].flatten(1).sum(1)
+        pick = torch.argsort(valid, descending=True, stable=True)[: self.n_images]
+        self.windows = {k: batch[k][pick].detach().cpu().clone() for k in BATCH_KEYS}
+        gt = self.windows["n_lat"][self.windows["mask"]].abs()
+        if gt.numel():
+            # colour range from the shown windows' ground truth (n_lat is mostly near 0)
+            self.normal_limit = max(0.05, float(torch.quantile(gt.float(), 0.98)))
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        tb = self._tensorboard(trainer)
+        if tb is None or self.windows is None or trainer.sanity_checking:
+            return
+        if trainer.current_epoch % self.every_n_epochs:
+            return
+        with torch.no_grad():
+            pred = pl_module(self.windows["intensity"].to(pl_module.device)).float().cpu()
+        for i in range(pred.shape[0]):
+            panel = render_window_panel(
+                self.windows["intensity"][i, 0].numpy(),
+                self.windows["n_lat"][i, 0].numpy(),
+                pred[i, 0].numpy(),
+                self.windows["mask"][i, 0].numpy(),
+                self.normal_limit,
+            )
+            tb.experiment.add_image(
+                f"val_images/window_{i}", panel, trainer.global_step, dataformats="HWC"
+            )
+
+
+# --------------------------------------------------------------------- table
+def table_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """Group ``test/{name}/{metric}`` (or ``test/{metric}``) values into table rows
+    ``{name: {metric: value}}`` for the six paper metrics; rows missing one are left out."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        parts = str(key).split("/")
+        if parts[0] != "test" or parts[-1] not in METRIC_NAMES or len(parts) not in (2, 3):
+            continue
+        name = parts[1] if len(parts) == 3 else "test"
+        rows.setdefault(name, {})[parts[-1]] = float(value)
+    return {k: v for k, v in rows.items() if set(METRIC_NAMES) <= set(v)}
+
+
+class CNNTableWriter(pl.Callback):
+    """After testing, writes the Table-2-style CNN table (Markdown + CSV, the paper's numbers
+    beside ours) into ``out_dir`` from the ``test/{name}/...`` metrics."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.paths: tuple[Path, Path] | None = None
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        from sss2bathy.eval.cnn_table import write_cnn_table
+
+        if not trainer.is_global_zero:
+            return
+        rows = table_rows_from_metrics(trainer.callback_metrics)
+        if not rows:
+            log.warning("CNN table: no complete test/<name>/<metric> set was logged; not written")
+            return
+        if any(not math.isfinite(v) for row in rows.values() for v in row.values()):
+            log.warning("CNN table: some test metrics are not finite (no valid pixel?)")
+        self.paths = write_cnn_table(rows, self.out_dir)
+        log.info("CNN table written to %s", self.paths[0])
+
+
+__all__ = [
+    "CNNTableWriter",
+    "NormalCNNModule",
+    "NormalImageLogger",
+    "describe_factory",
+    "net_config",
+    "render_window_panel",
+    "table_rows_from_metrics",
+]

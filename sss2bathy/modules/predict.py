@@ -1,0 +1,333 @@
+"""Whole-line normal prediction with a trained CNN checkpoint (input of SIREN ``normals=cnn``).
+
+Each head of each line is cut into windows of ``window_pings x window_bins`` with the
+training overlap (origins from :func:`sss2bathy.data.windows.line_windows`: a regular
+stride, the last window flush with the end), the windows run through the network in
+batches, and overlapping predictions are averaged back into the ``(P, 2, B)`` waterfall. Lines shorter than a window are zero-padded (and the
+padding cropped off); intensity is normalised exactly as for training
+(``sss2bathy.data.normalize.normalize_intensity``).
+
+Masks: with ``draped`` lines (the MBES-draped survey) the result's mask is a copy of the
+draped mask. Without them (a survey with no MBES) it is the sonar-only mask of
+:func:`sonar_only_mask`: water column from the altimeter, no-hit where altitude or intensity
+is missing; shadows can not be told without a mesh. Invalid bins hold NaN in ``n_lat``.
+
+Results are cached per line under ``survey_dir/predictions/<key>/<line>.npz`` where ``key``
+hashes the checkpoint file's content, the window size and overlap and the mask source; a
+cached file whose key, shape or mask does not match is recomputed with a warning.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.windows import line_windows
+from sss2bathy.survey import MASK_NO_HIT, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
+from sss2bathy.utils.atomic import atomic_path, file_sha256, stable_hash
+
+log = logging.getLogger(__name__)
+
+NET_PACKAGE = "sss2bathy.models."
+COMPILED_PREFIX = "_orig_mod."
+CACHE_VERSION = 1
+
+
+# --------------------------------------------------------------------- windows
+def stitch_windows(
+    windows: np.ndarray, origins: np.ndarray | Sequence[tuple[int, int]], shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Average overlapping windows back into a waterfall.
+
+    Args:
+        windows: ``(N, h, w)`` values.
+        origins: ``(N, 2)`` ``(ping0, bin0)`` of each window's first pixel.
+        shape: ``(P, B)`` waterfall shape; every window must lie inside it.
+
+    Returns:
+        ``(mean (P, B) float32, count (P, B) int32)``: the mean of all windows covering each
+        pixel (NaN where none does) and the number of windows that cover it.
+    """
+    windows = np.asarray(windows)
+    origins = np.asarray(origins, dtype=np.int64)
+    if origins.size == 0:
+        origins = origins.reshape(0, 2)
+    if windows.ndim != 3:
+        raise ValueError(f"windows: expected shape (N, h, w), found {windows.shape}")
+    if origins.shape != (windows.shape[0], 2):
+        raise ValueError(f"origins: expected shape ({windows.shape[0]}, 2), found {origins.shape}")
+    if len(shape) != 2 or min(shape) < 1:
+        raise ValueError(f"shape: expected (P, B) with P, B >= 1, found {shape}")
+    n_pings, n_bins = int(shape[0]), int(shape[1])
+    h, w = windows.shape[1:]
+    outside = (
+        (origins[:, 0] < 0)
+        | (origins[:, 1] < 0)
+        | (origins[:, 0] + h > n_pings)
+        | (origins[:, 1] + w > n_bins)
+    )
+    if outside.any():
+        bad = int(np.argmax(outside))
+        raise ValueError(
+            f"origins: expected windows of {h}x{w} inside {shape}, found origin "
+            f"{tuple(origins[bad])} (window {bad})"
+        )
+    rows = origins[:, 0, None, None] + np.arange(h)[None, :, None]
+    cols = origins[:, 1, None, None] + np.arange(w)[None, None, :]
+    flat = (rows * n_bins + cols).ravel()
+    size = n_pings * n_bins
+    total = np.bincount(flat, weights=windows.astype(np.float64).ravel(), minlength=size)
+    count = np.bincount(flat, minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return mean.reshape(shape).astype(np.float32), count.reshape(shape).astype(np.int32)
+
+
+# --------------------------------------------------------------------- network
+def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild the network of a :class:`~sss2bathy.modules.normal_cnn.NormalCNNModule`
+    checkpoint (safe loading, ``weights_only=True``) and return it in eval mode.
+
+    The class comes from ``hyper_parameters.net_config._target_``, which must name a class
+    in ``sss2bathy.models`` (a checkpoint can not make us import anything else).
+    """
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {path}")
+    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    config = (ckpt.get("hyper_parameters") or {}).get("net_config")
+    if not isinstance(config, Mapping) or "_target_" not in config:
+        raise ValueError(
+            f"ckpt_path: expected a NormalCNNModule checkpoint with hyper_parameters.net_config, "
+            f"found keys {sorted(ckpt.get('hyper_parameters') or {})} in {path}"
+        )
+    target = str(config["_target_"])
+    if not target.startswith(NET_PACKAGE):
+        raise ValueError(
+            f"ckpt_path: net_config._target_ must name a class in {NET_PACKAGE}*, found {target!r}"
+        )
+    module_name, _, class_name = target.rpartition(".")
+    cls = getattr(importlib.import_module(module_name), class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise ValueError(f"ckpt_path: net_config._target_ {target!r} is not an nn.Module class")
+    net = cls(**{k: v for k, v in config.items() if k != "_target_"})
+    state = {
+        k[len("net.") :].replace(COMPILED_PREFIX, ""): v
+        for k, v in ckpt["state_dict"].items()
+        if k.startswith("net.")
+    }
+    net.load_state_dict(state, strict=True)
+    return net.eval()
+
+
+@torch.no_grad()
+def predict_waterfall(
+    net: nn.Module,
+    intensity: np.ndarray,
+    window: tuple[int, int],
+    overlap: float,
+    batch_size: int = 64,
+    device: str | torch.device = "cpu",
+) -> np.ndarray:
+    """Run ``net`` over both heads of a normalised waterfall and stitch by averaging.
+
+    Args:
+        net: ``[B, 1, h, w]`` -> ``[B, 1, h, w]``.
+        intensity: ``(P, 2, B)`` normalised intensity (finite).
+        window: ``(window_pings, window_bins)``.
+        overlap: fraction of a window shared with the next, in [0, 1).
+        batch_size: windows per forward pass.
+
+    Returns:
+        ``(P, 2, B)`` float32 prediction for every bin (masking is the caller's).
+    """
+    intensity = np.asarray(intensity, dtype=np.float32)
+    if intensity.ndim != 3 or intensity.shape[1] != 2:
+        raise ValueError(f"intensity: expected shape (P, 2, B), found {intensity.shape}")
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ValueError(f"batch_size: expected an integer >= 1, found {batch_size!r}")
+    h, w = window
+    n_pings, _, n_bins = intensity.shape
+    padded_shape = (max(n_pings, h), max(n_bins, w))
+    origins = line_windows(padded_shape[0], padded_shape[1], h, w, overlap)
+    out = np.empty(intensity.shape, dtype=np.float32)
+    for side in range(2):
+        waterfall = np.zeros(padded_shape, dtype=np.float32)
+        waterfall[:n_pings, :n_bins] = intensity[:, side]
+        view = np.lib.stride_tricks.sliding_window_view(waterfall, (h, w))
+        preds = np.empty((len(origins), h, w), dtype=np.float32)
+        for start in range(0, len(origins), batch_size):
+            o = origins[start : start + batch_size]
+            batch = torch.from_numpy(np.ascontiguousarray(view[o[:, 0], o[:, 1]]))
+            pred = net(batch[:, None].to(device))
+            preds[start : start + len(o)] = pred[:, 0].float().cpu().numpy()
+        mean, _ = stitch_windows(preds, origins, padded_shape)
+        out[:, side] = mean[:n_pings, :n_bins]
+    return out
+
+
+# --------------------------------------------------------------------- masks
+def sonar_only_mask(line: SidescanLine) -> np.ndarray:
+    """``(P, 2, B)`` uint8 mask from the sonar alone (no mesh): ``MASK_WATER_COLUMN`` where
+    the slant range is below the altimeter altitude, ``MASK_NO_HIT`` for pings without
+    altitude and for non-finite intensity. Shadows are not detected."""
+    altitude = np.asarray(line.altitude_m, dtype=np.float64)
+    water = line.range_m[None, :].astype(np.float64) < np.nan_to_num(altitude, nan=np.inf)[:, None]
+    mask = np.where(water, MASK_WATER_COLUMN, MASK_VALID).astype(np.uint8)
+    mask = np.repeat(mask[:, None, :], 2, axis=1)
+    mask[~np.isfinite(altitude)] |= MASK_NO_HIT
+    mask[~np.isfinite(line.intensity)] |= MASK_NO_HIT
+    return mask
+
+
+def _draped_mask(draped: Any, name: str) -> np.ndarray:
+    mask = draped.get("mask") if isinstance(draped, Mapping) else getattr(draped, "mask", None)
+    if mask is None:
+        raise ValueError(f"draped['{name}']: expected a DrapedLine with a 'mask', found {draped!r}")
+    return np.asarray(mask, dtype=np.uint8)
+
+
+# --------------------------------------------------------------------- cache
+def _load_cached(path: Path, key: str, mask: np.ndarray) -> np.ndarray | None:
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            ok = (
+                str(data["key"]) == key
+                and data["n_lat"].shape == mask.shape
+                and np.array_equal(data["mask"], mask)
+            )
+            if ok:
+                return data["n_lat"].astype(np.float32)
+    except Exception as exc:  # truncated / corrupt archive: rebuild it
+        log.warning("prediction cache %s unreadable (%s); recomputing", path, exc)
+        return None
+    log.warning("prediction cache %s is stale (key, shape or mask changed); recomputing", path)
+    return None
+
+
+def _save_cached(path: Path, key: str, n_lat: np.ndarray, mask: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, n_lat=n_lat, mask=mask, key=np.array(key))
+
+
+def checkpoint_window_config(ckpt_path: str | Path) -> dict[str, Any]:
+    """``window_pings``, ``window_bins``, ``overlap`` of the windows a checkpoint was trained
+    on, from the datamodule hyper-parameters Lightning stores in it (safe loading)."""
+    ckpt = torch.load(Path(ckpt_path), map_location="cpu", weights_only=True)
+    data = ckpt.get("datamodule_hyper_parameters") or {}
+    keys = ("window_pings", "window_bins", "overlap")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise ValueError(
+            f"window_cfg: none given and checkpoint {ckpt_path} stores no datamodule "
+            f"hyper-parameters {missing}; pass the training windows' config"
+        )
+    return {k: data[k] for k in keys}
+
+
+def _window_params(window_cfg: Mapping[str, Any]) -> tuple[int, int | None, float, int]:
+    if not isinstance(window_cfg, Mapping):
+        raise ValueError(f"window_cfg: expected a mapping, found {type(window_cfg).__name__}")
+    for key in ("window_pings", "window_bins", "overlap"):
+        if key not in window_cfg:
+            raise ValueError(f"window_cfg: missing key '{key}'; found {sorted(window_cfg)}")
+    h, w, overlap = window_cfg["window_pings"], window_cfg["window_bins"], window_cfg["overlap"]
+    batch = window_cfg.get("batch_size", 64)
+    checks = [("window_pings", h), ("batch_size", batch)] + (
+        [] if w is None else [("window_bins", w)]
+    )
+    for name, value in checks:
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"window_cfg.{name}: expected an integer >= 1, found {value!r}")
+    if not isinstance(overlap, int | float) or isinstance(overlap, bool) or not 0 <= overlap < 1:
+        raise ValueError(f"window_cfg.overlap: expected a fraction in [0, 1), found {overlap!r}")
+    return h, w, float(overlap), batch
+
+
+# --------------------------------------------------------------------- API
+def predict_normals(
+    ckpt_path: str | Path,
+    survey: Survey,
+    survey_dir: str | Path,
+    line_names: Sequence[str],
+    draped: Mapping[str, Any] | None,
+    window_cfg: Mapping[str, Any] | None,
+    device: str | torch.device | None = None,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Predicted n_lat waterfalls of whole lines, cached under ``survey_dir/predictions/``.
+
+    Args:
+        ckpt_path: a ``NormalCNNModule`` checkpoint.
+        survey: the survey holding the lines.
+        survey_dir: the survey's folder (cache root).
+        line_names: lines to predict.
+        draped: ``{line name: DrapedLine}`` (uses ``.mask (P, 2, B) uint8``), or None for the
+            sonar-only mask (:func:`sonar_only_mask`).
+        window_cfg: ``window_pings``, ``window_bins`` (None: a line's bins), ``overlap``: the
+            training windows (the windows DataModule config works as is); optional
+            ``batch_size`` (64). None: read from the checkpoint
+            (:func:`checkpoint_window_config`).
+        device: torch device; default CUDA if available, else CPU.
+
+    Returns:
+        ``{line: (n_lat (P, 2, B) float32, NaN at invalid bins, mask (P, 2, B) uint8)}``.
+    """
+    if isinstance(line_names, str) or not all(isinstance(n, str) for n in line_names):
+        raise ValueError(f"line_names: expected a list of line names, found {line_names!r}")
+    known = {ln.name for ln in survey.lines}
+    missing = [n for n in line_names if n not in known]
+    if missing:
+        raise ValueError(f"line_names: expected lines of survey '{survey.name}', unknown {missing}")
+    if draped is not None:
+        absent = [n for n in line_names if n not in draped]
+        if absent:
+            raise ValueError(f"draped: expected an entry for every line, missing {absent}")
+    if not Path(ckpt_path).is_file():
+        raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {ckpt_path}")
+    if window_cfg is None:
+        window_cfg = checkpoint_window_config(ckpt_path)
+    h, w, overlap, batch_size = _window_params(window_cfg)
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    key = stable_hash(
+        {
+            "version": CACHE_VERSION,
+            "ckpt": file_sha256(ckpt_path),
+            "window": [h, w, overlap],
+            "mask": "draped" if draped is not None else "sonar_only",
+        }
+    )
+    cache_dir = Path(survey_dir) / "predictions" / key
+    net: nn.Module | None = None
+    results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name in line_names:
+        line = survey.line(name)
+        mask = _draped_mask(draped[name], name) if draped is not None else sonar_only_mask(line)
+        if mask.shape != line.intensity.shape:
+            raise ValueError(
+                f"draped['{name}'].mask: expected shape {line.intensity.shape}, found {mask.shape}"
+            )
+        path = cache_dir / f"{name}.npz"
+        n_lat = _load_cached(path, key, mask)
+        if n_lat is None:
+            if net is None:
+                net = load_normal_net(ckpt_path).to(device)
+            # the training windows' normalisation: per head, over valid finite bins
+            valid = (mask == MASK_VALID) & np.isfinite(line.intensity)
+            intensity = normalize_intensity(line.intensity, valid)
+            window = (h, line.n_bins if w is None else w)
+            n_lat = predict_waterfall(net, intensity, window, overlap, batch_size, device)
+            n_lat[mask != MASK_VALID] = np.nan
+            _save_cached(path, key, n_lat, mask)
+        results[name] = (n_lat, mask.copy())
+    return results

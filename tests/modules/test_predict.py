@@ -1,0 +1,181 @@
+"""Whole-line prediction: window origins, exact stitching, checkpoint loading, masks, cache."""
+
+import logging
+from functools import partial
+
+import numpy as np
+import pytest
+import pytorch_lightning as pl
+import torch
+
+from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.windows import line_windows
+from sss2bathy.losses import NormalLoss
+from sss2bathy.models.normal_cnn import NormalResNet
+from sss2bathy.modules import predict as predict_mod
+from sss2bathy.modules.normal_cnn import NormalCNNModule
+from sss2bathy.modules.predict import (
+    load_normal_net,
+    predict_normals,
+    predict_waterfall,
+    sonar_only_mask,
+    stitch_windows,
+)
+from sss2bathy.survey import MASK_SHADOW, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    """One intra-op thread: the CI box has 2 cores shared by parallel jobs (oversubscribed
+    threads slow these tiny convolutions down 10-20x)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_stitch_reconstructs_waterfall_exactly():
+    rng = np.random.default_rng(0)
+    waterfall = rng.normal(size=(37, 23)).astype(np.float32)
+    h, w = 8, 8
+    origins = line_windows(37, 23, h, w, 0.75)
+    windows = np.stack([waterfall[p : p + h, b : b + w] for p, b in origins])
+    mean, count = stitch_windows(windows, origins, waterfall.shape)
+    np.testing.assert_array_equal(mean, waterfall)
+    assert count.min() >= 1 and count.max() > 1 and count.dtype == np.int32
+
+
+def test_stitch_averages_overlaps_and_rejects_outside_windows():
+    windows = np.stack([np.ones((2, 3)), 3 * np.ones((2, 3))])
+    mean, count = stitch_windows(windows, [(0, 0), (0, 2)], (2, 6))
+    np.testing.assert_array_equal(mean[0], [1, 1, 2, 3, 3, np.nan])
+    np.testing.assert_array_equal(count[0], [1, 1, 2, 1, 1, 0])
+    with pytest.raises(ValueError, match="origins"):
+        stitch_windows(windows, [(0, 0), (0, 4)], (2, 6))
+
+
+def make_line(name: str, n_pings: int, n_bins: int, seed: int) -> SidescanLine:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_pings, dtype=np.float64)
+    return SidescanLine(
+        name=name,
+        time_s=t,
+        position=np.stack([t, np.zeros_like(t), np.full_like(t, -2.0)], axis=1),
+        rotation=np.repeat(np.eye(3)[None], n_pings, axis=0),
+        altitude_m=np.full(n_pings, 3.0, np.float32),
+        intensity=rng.random((n_pings, 2, n_bins)).astype(np.float32),
+        range_m=np.linspace(1.0, 12.0, n_bins, dtype=np.float32),
+    )
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    module = NormalCNNModule(
+        net=NormalResNet(base_width=2, n_blocks=1),
+        loss=NormalLoss(),
+        optimizer=partial(torch.optim.Adam, lr=1e-3),
+        image_every_n_epochs=0,
+    )
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, max_epochs=0)
+    trainer.strategy.connect(module)
+    path = tmp_path_factory.mktemp("ckpt") / "cnn.ckpt"
+    trainer.save_checkpoint(path)
+    return path, module.net.eval()
+
+
+def test_load_normal_net_rebuilds_the_network_safely(checkpoint, tmp_path):
+    path, net = checkpoint
+    loaded = load_normal_net(path)
+    x = torch.randn(2, 1, 8, 12)
+    torch.testing.assert_close(loaded(x), net(x))
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["hyper_parameters"]["net_config"]["_target_"] = "os.system"
+    torch.save(ckpt, tmp_path / "evil.ckpt")
+    with pytest.raises(ValueError, match="sss2bathy.models"):
+        load_normal_net(tmp_path / "evil.ckpt")
+
+
+def test_single_window_prediction_equals_the_network_on_the_whole_line(checkpoint):
+    _, net = checkpoint
+    intensity = np.random.default_rng(1).normal(size=(12, 2, 16)).astype(np.float32)
+    out = predict_waterfall(net, intensity, (12, 16), 0.75, batch_size=1)
+    with torch.no_grad():
+        direct = net(torch.from_numpy(intensity).permute(1, 0, 2)[:, None])[:, 0]
+    np.testing.assert_allclose(out, direct.permute(1, 0, 2).numpy(), atol=1e-6)
+    # overlapping windows: each pixel is the mean of the window predictions covering it
+    tiled = predict_waterfall(net, intensity, (8, 8), 0.5, batch_size=3)
+    with torch.no_grad():
+        first = net(torch.from_numpy(intensity[:8, 0, :8])[None, None])[0, 0].numpy()
+    np.testing.assert_allclose(tiled[:2, 0, :4], first[:2, :4], atol=1e-6)  # one window only
+    assert np.isfinite(tiled).all() and not np.allclose(tiled, out)
+
+
+def test_predict_normals_masks_pads_and_caches(checkpoint, tmp_path, monkeypatch, caplog):
+    path, net = checkpoint
+    lines = [make_line("a", 30, 20, 0), make_line("short", 5, 20, 1)]
+    survey = Survey(name="tiny", lines=lines)
+    draped = {}
+    for ln in lines:
+        mask = np.zeros(ln.intensity.shape, np.uint8)
+        mask[:, :, :3] = MASK_WATER_COLUMN
+        mask[2, 1, 10:12] = MASK_SHADOW
+        draped[ln.name] = {"mask": mask}
+    window_cfg = {"window_pings": 8, "window_bins": 12, "overlap": 0.75, "batch_size": 4}
+    out = predict_normals(path, survey, tmp_path, ["a", "short"], draped, window_cfg, "cpu")
+    for name, (n_lat, mask) in out.items():
+        line = survey.line(name)
+        assert n_lat.shape == mask.shape == line.intensity.shape and n_lat.dtype == np.float32
+        np.testing.assert_array_equal(mask, draped[name]["mask"])
+        assert np.isnan(n_lat[mask != MASK_VALID]).all()
+        assert np.isfinite(n_lat[mask == MASK_VALID]).all() and np.abs(n_lat[mask == 0]).max() <= 1
+    # the short line (5 pings < 8) is zero-padded: same as running the padded window
+    valid = draped["short"]["mask"] == MASK_VALID
+    x = normalize_intensity(survey.line("short").intensity, valid)
+    padded = np.zeros((8, 2, 20), np.float32)
+    padded[:5] = x
+    expected = predict_waterfall(net, padded, (8, 12), 0.75)[:5]
+    np.testing.assert_allclose(out["short"][0][valid], expected[valid], atol=1e-6)
+
+    files = list((tmp_path / "predictions").glob("*/*.npz"))
+    assert sorted(f.name for f in files) == ["a.npz", "short.npz"]
+    # cached: no network needed the second time, identical result
+    monkeypatch.setattr(predict_mod, "load_normal_net", lambda *a, **k: pytest.fail("recomputed"))
+    again = predict_normals(path, survey, tmp_path, ["a"], draped, window_cfg, "cpu")
+    np.testing.assert_array_equal(again["a"][0], out["a"][0])
+    monkeypatch.undo()
+    # a truncated cache file is detected and rebuilt
+    cached = next(f for f in files if f.name == "a.npz")
+    cached.write_bytes(cached.read_bytes()[:100])
+    with caplog.at_level(logging.WARNING):
+        rebuilt = predict_normals(path, survey, tmp_path, ["a"], draped, window_cfg, "cpu")
+    assert "unreadable" in caplog.text
+    np.testing.assert_allclose(rebuilt["a"][0], out["a"][0], atol=1e-6)
+
+
+def test_sonar_only_mask_and_input_validation(checkpoint, tmp_path):
+    path, _ = checkpoint
+    line = make_line("a", 6, 12, 0)
+    line.altitude_m[4] = np.nan
+    mask = sonar_only_mask(line)
+    water = line.range_m < 3.0
+    assert mask.shape == (6, 2, 12)
+    assert (mask[:4, :, water] == MASK_WATER_COLUMN).all() and (mask[:4, :, ~water] == 0).all()
+    assert (mask[4] != MASK_VALID).all()
+    survey = Survey(name="tiny", lines=[line])
+    cfg = {"window_pings": 8, "window_bins": None, "overlap": 0.5}  # None: all 12 bins
+    out = predict_normals(path, survey, tmp_path, ["a"], None, cfg, "cpu")
+    np.testing.assert_array_equal(out["a"][1], mask)
+    with pytest.raises(ValueError, match="unknown.*'b'"):
+        predict_normals(path, survey, tmp_path, ["b"], None, cfg, "cpu")
+    with pytest.raises(ValueError, match="window_bins"):
+        predict_normals(path, survey, tmp_path, ["a"], None, {"window_pings": 4, "overlap": 0.5})
+    with pytest.raises(ValueError, match="window_cfg.*datamodule"):
+        predict_normals(path, survey, tmp_path, ["a"], None, None, "cpu")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["datamodule_hyper_parameters"] = {"window_pings": 8, "window_bins": None, "overlap": 0.5}
+    torch.save(ckpt, tmp_path / "with_dm.ckpt")
+    from_ckpt = predict_normals(tmp_path / "with_dm.ckpt", survey, tmp_path, ["a"], None, None)
+    np.testing.assert_array_equal(from_ckpt["a"][0], out["a"][0])
+    with pytest.raises(ValueError, match="draped.*'a'"):
+        predict_normals(path, survey, tmp_path, ["a"], {}, cfg, "cpu")
