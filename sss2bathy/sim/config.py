@@ -1,0 +1,592 @@
+"""Typed, validated configuration of the synthetic survey generator (the ``data.survey`` group).
+
+The YAML presets (``conf/data/survey/synthetic_d*.yaml``) spell every key out; the
+defaults here are those of the Dataset-I analogue at paper scale. Degrees are used in the
+configs only and are converted to radians here. Every bad value or unknown key raises a
+``ValueError`` naming the full key (``data.survey.plan.line_spacing_m``), what was expected
+and what was found.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from sss2bathy.utils.atomic import stable_hash
+
+ROOT = "data.survey"
+
+#: Bumped whenever the generator's output changes for the same config (invalidates caches).
+GENERATOR_VERSION = 1
+
+#: Top-level keys that do not change the generated data (not part of the config hash).
+UNHASHED_KEYS = ("workers",)
+
+
+def config_error(path: str, expected: str, found: Any) -> ValueError:
+    """The one error format of this package: ``<key>: expected <what>, found <value>``."""
+    return ValueError(f"{path}: expected {expected}, found {found!r}")
+
+
+class _Reader:
+    """Reads one config section key by key and rejects keys nobody asked for."""
+
+    def __init__(self, data: Any, path: str) -> None:
+        if data is None:
+            data = {}
+        if not isinstance(data, Mapping):
+            raise config_error(path, "a mapping", data)
+        self.data, self.path, self.used = dict(data), path, set()
+
+    def _get(self, key: str, default: Any) -> tuple[str, Any]:
+        self.used.add(key)
+        return f"{self.path}.{key}", self.data.get(key, default)
+
+    def number(
+        self,
+        key: str,
+        default: float,
+        *,
+        gt: float | None = None,
+        ge: float | None = None,
+        lt: float | None = None,
+        le: float | None = None,
+    ) -> float:
+        path, value = self._get(key, default)
+        return _check_number(path, value, gt=gt, ge=ge, lt=lt, le=le)
+
+    def integer(self, key: str, default: int, *, ge: int | None = None) -> int:
+        path, value = self._get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+            raise config_error(path, "an integer", value)
+        if ge is not None and value < ge:
+            raise config_error(path, f"an integer >= {ge}", value)
+        return int(value)
+
+    def optional_number(self, key: str, default: float | None, *, gt: float) -> float | None:
+        path, value = self._get(key, default)
+        if value is None:
+            return None
+        return _check_number(path, value, gt=gt)
+
+    def pair(
+        self,
+        key: str,
+        default: Sequence[float],
+        *,
+        gt: float | None = None,
+        le: float | None = None,
+        ordered: bool = True,
+    ) -> tuple[float, float]:
+        """Two numbers; ``[lo, hi]`` with ``lo <= hi`` when ``ordered``."""
+        path, value = self._get(key, default)
+        if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
+            raise config_error(path, "a [low, high] pair", value)
+        lo = _check_number(f"{path}[0]", value[0], gt=gt, le=le)
+        hi = _check_number(f"{path}[1]", value[1], gt=gt, le=le)
+        if ordered and lo > hi:
+            raise config_error(path, "low <= high", list(value))
+        return lo, hi
+
+    def numbers(self, key: str, default: Sequence[float], *, ge: float | None = None) -> tuple:
+        path, value = self._get(key, default)
+        if not isinstance(value, Sequence) or isinstance(value, str):
+            raise config_error(path, "a list of numbers", value)
+        return tuple(_check_number(f"{path}[{i}]", v, ge=ge) for i, v in enumerate(value))
+
+    def choice(self, key: str, default: str, choices: Sequence[str]) -> str:
+        path, value = self._get(key, default)
+        if value not in choices:
+            raise config_error(path, f"one of {list(choices)}", value)
+        return str(value)
+
+    def text(self, key: str, default: str | None) -> str | None:
+        path, value = self._get(key, default)
+        if value is not None and not isinstance(value, str):
+            raise config_error(path, "a string", value)
+        return value
+
+    def section(self, key: str) -> _Reader:
+        path, value = self._get(key, None)
+        return _Reader(value, path)
+
+    def raw(self, key: str) -> Any:
+        return self._get(key, None)[1]
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise ValueError(
+                f"{self.path}: unknown key(s) {unknown}; expected some of {sorted(self.used)}"
+            )
+
+
+def _check_number(
+    path: str,
+    value: Any,
+    *,
+    gt: float | None = None,
+    ge: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise config_error(path, "a finite number", value)
+    bounds = []
+    if gt is not None and not value > gt:
+        bounds.append(f"> {gt}")
+    if ge is not None and not value >= ge:
+        bounds.append(f">= {ge}")
+    if lt is not None and not value < lt:
+        bounds.append(f"< {lt}")
+    if le is not None and not value <= le:
+        bounds.append(f"<= {le}")
+    if bounds:
+        limits = [f"> {gt}" if gt is not None else None, f">= {ge}" if ge is not None else None]
+        limits += [f"< {lt}" if lt is not None else None, f"<= {le}" if le is not None else None]
+        raise config_error(path, "a number " + " and ".join(x for x in limits if x), value)
+    return float(value)
+
+
+# ---------------------------------------------------------------------------- terrain
+@dataclass(frozen=True)
+class RidgeParams:
+    """Rock ridges: random meandering polylines with a rounded cross-section."""
+
+    density_per_ha: float = 0.6
+    height_m: tuple[float, float] = (0.8, 2.5)
+    width_m: tuple[float, float] = (3.0, 7.0)
+    length_m: tuple[float, float] = (25.0, 90.0)
+    meander_rad: float = math.radians(8.0)
+
+
+@dataclass(frozen=True)
+class BoulderParams:
+    """Boulders: clustered ellipsoidal caps with a power-law size distribution."""
+
+    density_per_ha: float = 180.0
+    diameter_m: tuple[float, float] = (0.3, 3.0)
+    size_exponent: float = 2.3
+    height_ratio: tuple[float, float] = (0.4, 0.7)
+    clustering: float = 1.2
+    cluster_scale_m: float = 25.0
+    ridge_affinity: float = 2.0
+
+
+@dataclass(frozen=True)
+class TerrainParams:
+    """Seafloor geometry (metres, radians).
+
+    The terrain covers ``[0, size_m[0]] x [0, size_m[1]]`` (x East, y North) in the local
+    frame; heights are negative (z = -depth).
+    """
+
+    size_m: tuple[float, float] = (350.0, 300.0)
+    cell_m: float = 0.5
+    mean_depth_m: float = 17.0
+    regional_slope_rad: float = math.radians(2.2)
+    regional_slope_azimuth_rad: float = math.radians(30.0)
+    relief_wavelengths_m: tuple[float, ...] = (160.0, 80.0, 40.0, 20.0, 8.0, 3.0)
+    relief_amplitudes_m: tuple[float, ...] = (2.0, 1.4, 0.7, 0.3, 0.08, 0.03)
+    ridges: RidgeParams = RidgeParams()
+    boulders: BoulderParams = BoulderParams()
+    texture_cell_m: float = 0.25
+    mbes_noise_m: float = 0.02
+
+
+def _read_terrain(r: _Reader) -> TerrainParams:
+    size = r.pair("size_m", (350.0, 300.0), gt=0.0, ordered=False)
+    cell = r.number("cell_m", 0.5, gt=0.0)
+    if min(size) < 8 * cell:
+        raise config_error(f"{r.path}.size_m", f"at least 8 cells ({8 * cell} m) per side", size)
+    wl = r.numbers("relief_wavelengths_m", TerrainParams.relief_wavelengths_m, ge=0.0)
+    amp = r.numbers("relief_amplitudes_m", TerrainParams.relief_amplitudes_m, ge=0.0)
+    if len(wl) != len(amp):
+        raise config_error(
+            f"{r.path}.relief_amplitudes_m", f"{len(wl)} values (one per wavelength)", list(amp)
+        )
+    if any(w <= 0 for w in wl):
+        raise config_error(f"{r.path}.relief_wavelengths_m", "positive wavelengths", list(wl))
+    rr = r.section("ridges")
+    ridges = RidgeParams(
+        density_per_ha=rr.number("density_per_ha", 0.6, ge=0.0),
+        height_m=rr.pair("height_m", (0.8, 2.5), gt=0.0),
+        width_m=rr.pair("width_m", (3.0, 7.0), gt=0.0),
+        length_m=rr.pair("length_m", (25.0, 90.0), gt=0.0),
+        meander_rad=math.radians(rr.number("meander_deg", 8.0, ge=0.0, le=90.0)),
+    )
+    rr.done()
+    br = r.section("boulders")
+    boulders = BoulderParams(
+        density_per_ha=br.number("density_per_ha", 180.0, ge=0.0),
+        diameter_m=br.pair("diameter_m", (0.3, 3.0), gt=0.0),
+        size_exponent=br.number("size_exponent", 2.3, gt=0.0),
+        height_ratio=br.pair("height_ratio", (0.4, 0.7), gt=0.0, le=1.0),
+        clustering=br.number("clustering", 1.2, ge=0.0),
+        cluster_scale_m=br.number("cluster_scale_m", 25.0, gt=0.0),
+        ridge_affinity=br.number("ridge_affinity", 2.0, ge=0.0),
+    )
+    br.done()
+    params = TerrainParams(
+        size_m=size,
+        cell_m=cell,
+        mean_depth_m=r.number("mean_depth_m", 17.0, gt=0.0),
+        regional_slope_rad=math.radians(r.number("regional_slope_deg", 2.2, ge=0.0, lt=45.0)),
+        regional_slope_azimuth_rad=math.radians(r.number("regional_slope_azimuth_deg", 30.0)),
+        relief_wavelengths_m=wl,
+        relief_amplitudes_m=amp,
+        ridges=ridges,
+        boulders=boulders,
+        texture_cell_m=r.number("texture_cell_m", 0.25, gt=0.0),
+        mbes_noise_m=r.number("mbes_noise_m", 0.02, ge=0.0),
+    )
+    r.done()
+    return params
+
+
+# -------------------------------------------------------------------------- materials
+@dataclass(frozen=True)
+class MaterialClass:
+    """One seabed material: its share of the map, backscatter and texture.
+
+    Backscattering cross-section per unit area (not Lambertian unless ``exponent`` = 2 and
+    ``specular`` = 0): ``sigma0(i) = mu cos(i)^exponent + specular exp(-i^2 / 2 w^2)``,
+    ``i`` the incidence angle, ``w = specular_width_rad``.
+    """
+
+    name: str
+    fraction: float
+    mu: float
+    exponent: float
+    specular: float
+    specular_width_rad: float
+    texture_contrast: float
+    texture_scale_m: float
+    ripple_wavelength_m: float
+    ripple_contrast: float
+
+
+_MATERIAL_DEFAULTS: dict[str, dict[str, float]] = {
+    "mud": dict(
+        fraction=0.3,
+        mu=0.3,
+        exponent=2.6,
+        specular=0.6,
+        specular_width_deg=5.0,
+        texture_contrast=0.12,
+        texture_scale_m=3.0,
+    ),
+    "sand": dict(
+        fraction=0.4,
+        mu=1.0,
+        exponent=1.8,
+        specular=1.5,
+        specular_width_deg=6.0,
+        texture_contrast=0.15,
+        texture_scale_m=1.5,
+        ripple_wavelength_m=1.2,
+        ripple_contrast=0.25,
+    ),
+    "gravel": dict(
+        fraction=0.25,
+        mu=2.2,
+        exponent=1.4,
+        specular=0.8,
+        specular_width_deg=9.0,
+        texture_contrast=0.45,
+        texture_scale_m=0.4,
+    ),
+    "rock": dict(
+        fraction=0.05,
+        mu=4.0,
+        exponent=1.15,
+        specular=3.0,
+        specular_width_deg=12.0,
+        texture_contrast=0.35,
+        texture_scale_m=0.8,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class MaterialParams:
+    """The material map: classes (ordered: low -> high values of the map field)."""
+
+    classes: tuple[MaterialClass, ...]
+    map_scale_m: float = 30.0
+    depth_coupling: float = 0.6
+    boulder_material: str = "rock"
+    reference_material: str = "sand"
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.classes)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+
+def _read_materials(r: _Reader) -> MaterialParams:
+    classes_cfg = r.raw("classes")
+    if classes_cfg is None:
+        classes_cfg = _MATERIAL_DEFAULTS
+    if not isinstance(classes_cfg, Mapping) or not classes_cfg:
+        raise config_error(
+            f"{r.path}.classes", "a non-empty mapping name -> parameters", classes_cfg
+        )
+    classes = []
+    for name, spec in classes_cfg.items():
+        c = _Reader(spec, f"{r.path}.classes.{name}")
+        classes.append(
+            MaterialClass(
+                name=str(name),
+                fraction=c.number("fraction", 0.25, ge=0.0, le=1.0),
+                mu=c.number("mu", 1.0, gt=0.0),
+                exponent=c.number("exponent", 2.0, ge=1.0),
+                specular=c.number("specular", 0.0, ge=0.0),
+                specular_width_rad=math.radians(
+                    c.number("specular_width_deg", 6.0, gt=0.0, lt=90.0)
+                ),
+                texture_contrast=c.number("texture_contrast", 0.2, ge=0.0),
+                texture_scale_m=c.number("texture_scale_m", 1.0, gt=0.0),
+                ripple_wavelength_m=c.number("ripple_wavelength_m", 0.0, ge=0.0),
+                ripple_contrast=c.number("ripple_contrast", 0.0, ge=0.0),
+            )
+        )
+        c.done()
+    total = sum(c.fraction for c in classes)
+    if not math.isclose(total, 1.0, abs_tol=1e-6):
+        raise config_error(f"{r.path}.classes.*.fraction", "fractions summing to 1", total)
+    names = [c.name for c in classes]
+    params = MaterialParams(
+        classes=tuple(classes),
+        map_scale_m=r.number("map_scale_m", 30.0, gt=0.0),
+        depth_coupling=r.number("depth_coupling", 0.6, ge=0.0),
+        boulder_material=r.choice(
+            "boulder_material", "rock" if "rock" in names else names[-1], names
+        ),
+        reference_material=r.choice(
+            "reference_material", "sand" if "sand" in names else names[0], names
+        ),
+    )
+    r.done()
+    return params
+
+
+# ------------------------------------------------------------------------------- plan
+@dataclass(frozen=True)
+class PlanParams:
+    """Lawnmower survey plan (metres, seconds, radians).
+
+    Lines come in two perpendicular sets: the ``main`` set runs along ``main_axis``, the
+    ``cross`` set perpendicular to it. Test lines are split half/half between the sets (the
+    paper's test lines); ``train_cross_fraction`` of the training lines are cross lines.
+    """
+
+    n_train: int = 45
+    n_test: int = 12
+    train_cross_fraction: float = 0.5
+    main_axis: str = "x"
+    line_spacing_m: float | None = None
+    margin_m: float = 2.0
+    speed_mps: float = 2.0
+    ping_rate_hz: float = 12.0
+    turn_time_s: float = 60.0
+    mount: str = "hull"
+    sonar_depth_m: float = 1.5
+    altitude_m: float = 10.0
+    altitude_smoothing_m: float = 15.0
+    min_altitude_m: float = 2.0
+    roll_rad: float = math.radians(1.0)
+    pitch_rad: float = math.radians(0.5)
+    yaw_rad: float = math.radians(0.5)
+    motion_period_s: float = 6.0
+    nav_position_noise_m: float = 0.0
+    nav_attitude_noise_rad: float = 0.0
+    nav_noise_correlation_s: float = 10.0
+
+
+def _read_plan(r: _Reader) -> PlanParams:
+    motion = r.section("motion")
+    nav = r.section("nav_noise")
+    params = PlanParams(
+        n_train=r.integer("n_train", 45, ge=0),
+        n_test=r.integer("n_test", 12, ge=0),
+        train_cross_fraction=r.number("train_cross_fraction", 0.5, ge=0.0, le=1.0),
+        main_axis=r.choice("main_axis", "x", ("x", "y")),
+        line_spacing_m=r.optional_number("line_spacing_m", None, gt=0.0),
+        margin_m=r.number("margin_m", 2.0, ge=0.0),
+        speed_mps=r.number("speed_mps", 2.0, gt=0.0),
+        ping_rate_hz=r.number("ping_rate_hz", 12.0, gt=0.0),
+        turn_time_s=r.number("turn_time_s", 60.0, ge=0.0),
+        mount=r.choice("mount", "hull", ("hull", "auv")),
+        sonar_depth_m=r.number("sonar_depth_m", 1.5, ge=0.0),
+        altitude_m=r.number("altitude_m", 10.0, gt=0.0),
+        altitude_smoothing_m=r.number("altitude_smoothing_m", 15.0, ge=0.0),
+        min_altitude_m=r.number("min_altitude_m", 2.0, gt=0.0),
+        roll_rad=math.radians(motion.number("roll_deg", 1.0, ge=0.0, lt=30.0)),
+        pitch_rad=math.radians(motion.number("pitch_deg", 0.5, ge=0.0, lt=30.0)),
+        yaw_rad=math.radians(motion.number("yaw_deg", 0.5, ge=0.0, lt=30.0)),
+        motion_period_s=motion.number("period_s", 6.0, gt=0.0),
+        nav_position_noise_m=nav.number("position_m", 0.0, ge=0.0),
+        nav_attitude_noise_rad=math.radians(nav.number("attitude_deg", 0.0, ge=0.0, lt=30.0)),
+        nav_noise_correlation_s=nav.number("correlation_s", 10.0, gt=0.0),
+    )
+    motion.done()
+    nav.done()
+    r.done()
+    if params.n_train + params.n_test < 1:
+        raise config_error(f"{r.path}.n_train + n_test", ">= 1 line", 0)
+    return params
+
+
+# ------------------------------------------------------------------------------ sonar
+@dataclass(frozen=True)
+class SonarParams:
+    """Sidescan sensor and receiver chain (SI units, radians).
+
+    Beam pattern (one-way power) over the depression angle theta:
+    ``b = max(exp(-ln2 |2 (theta - tilt) / width|^rolloff), 10^(sidelobe_db / 10))`` — -3 dB
+    at the nominal beam edges; the echo carries ``b^2``.
+    """
+
+    frequency_hz: float = 850e3
+    tilt_rad: float = math.radians(25.0)
+    beam_width_rad: float = math.radians(50.0)
+    beam_rolloff: float = 2.0
+    sidelobe_db: float = -22.0
+    min_range_m: float = 1.0
+    max_range_m: float = 50.0
+    n_bins: int = 512
+    oversampling: int = 4
+    rays_per_raw_bin: float = 1.5
+    theta_ray_fraction: float = 0.25
+    salinity_ppt: float = 35.0
+    temperature_c: float = 8.0
+    ph: float = 8.0
+    tvg_spreading_exponent: float = 3.0
+    tvg_absorption_factor: float = 1.0
+    speckle_looks: float = 1.0
+    snr_db: float = 18.0
+    reference_level: float = 0.3
+    quantisation_bits: int = 16
+
+    @property
+    def n_raw_bins(self) -> int:
+        return self.n_bins * self.oversampling
+
+    @property
+    def beam_limits_rad(self) -> tuple[float, float]:
+        return (self.tilt_rad - self.beam_width_rad / 2, self.tilt_rad + self.beam_width_rad / 2)
+
+
+def _read_sonar(r: _Reader) -> SonarParams:
+    water = r.section("water")
+    tvg = r.section("tvg")
+    params = SonarParams(
+        frequency_hz=1e3 * r.number("frequency_khz", 850.0, gt=0.0),
+        tilt_rad=math.radians(r.number("tilt_deg", 25.0, ge=0.0, lt=90.0)),
+        beam_width_rad=math.radians(r.number("beam_width_deg", 50.0, gt=0.0, lt=180.0)),
+        beam_rolloff=r.number("beam_rolloff", 2.0, gt=0.0),
+        sidelobe_db=r.number("sidelobe_db", -22.0, lt=0.0),
+        min_range_m=r.number("min_range_m", 1.0, gt=0.0),
+        max_range_m=r.number("max_range_m", 50.0, gt=0.0),
+        n_bins=r.integer("n_bins", 512, ge=2),
+        oversampling=r.integer("oversampling", 4, ge=1),
+        rays_per_raw_bin=r.number("rays_per_raw_bin", 1.5, gt=0.0),
+        theta_ray_fraction=r.number("theta_ray_fraction", 0.25, gt=0.0, lt=1.0),
+        salinity_ppt=water.number("salinity_ppt", 35.0, ge=0.0, le=45.0),
+        temperature_c=water.number("temperature_c", 8.0, ge=-2.0, le=35.0),
+        ph=water.number("ph", 8.0, ge=6.0, le=9.0),
+        tvg_spreading_exponent=tvg.number("spreading_exponent", 3.0, ge=0.0, le=6.0),
+        tvg_absorption_factor=tvg.number("absorption_factor", 1.0, ge=0.0, le=2.0),
+        speckle_looks=r.number("speckle_looks", 1.0, gt=0.0),
+        snr_db=r.number("snr_db", 18.0),
+        reference_level=r.number("reference_level", 0.3, gt=0.0, le=1.0),
+        quantisation_bits=r.integer("quantisation_bits", 16, ge=1),
+    )
+    water.done()
+    tvg.done()
+    r.done()
+    if params.max_range_m <= params.min_range_m:
+        raise config_error(
+            f"{r.path}.max_range_m", f"> min_range_m ({params.min_range_m})", params.max_range_m
+        )
+    if params.quantisation_bits > 32:
+        raise config_error(f"{r.path}.quantisation_bits", "<= 32", params.quantisation_bits)
+    return params
+
+
+# ----------------------------------------------------------------------------- survey
+@dataclass(frozen=True)
+class SyntheticSurveyConfig:
+    """The whole generator config (``data.survey`` with ``kind: synthetic``)."""
+
+    name: str
+    seed: int
+    origin: dict
+    terrain: TerrainParams
+    materials: MaterialParams
+    plan: PlanParams
+    sonar: SonarParams
+    workers: int = 1
+
+    @classmethod
+    def from_mapping(cls, cfg: Mapping[str, Any]) -> SyntheticSurveyConfig:
+        """Validate a plain ``data.survey`` mapping (resolved, no OmegaConf nodes)."""
+        r = _Reader(cfg, ROOT)
+        kind = r.text("kind", "synthetic")
+        if kind != "synthetic":
+            raise config_error(f"{ROOT}.kind", "'synthetic'", kind)
+        name = r.text("name", None)
+        if not name or "/" in name or "\\" in name or name.startswith(".") or "$" in name:
+            raise config_error(f"{ROOT}.name", "a plain folder name (e.g. synthetic_d1_demo)", name)
+        seed = r.integer("seed", 0, ge=0)
+        origin = _read_origin(r.section("origin"))
+        terrain = _read_terrain(r.section("terrain"))
+        materials = _read_materials(r.section("materials"))
+        plan = _read_plan(r.section("plan"))
+        sonar = _read_sonar(r.section("sonar"))
+        workers = r.integer("workers", 1, ge=1)
+        r.text("description", None)
+        unknown = sorted(set(r.data) - r.used)
+        if unknown:
+            warnings.warn(
+                f"{ROOT}: ignoring keys {unknown} unknown to the synthetic generator",
+                stacklevel=2,
+            )
+        return cls(name, seed, origin, terrain, materials, plan, sonar, workers)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON/YAML-serialisable dict of the resolved config (radians, SI)."""
+        d = asdict(self)
+        return _plain(d)
+
+    def hash(self) -> str:
+        """Cache key: the resolved config minus unhashed keys, plus the generator version."""
+        d = {k: v for k, v in self.to_dict().items() if k not in UNHASHED_KEYS}
+        return stable_hash({"generator_version": GENERATOR_VERSION, "config": d})
+
+
+def _read_origin(r: _Reader) -> dict:
+    crs = r.text("crs", "EPSG:32633")
+    origin = {
+        "crs": crs,
+        "easting": r.number("easting", 680000.0),
+        "northing": r.number("northing", 6580000.0),
+    }
+    r.done()
+    return origin
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, float | int | str | bool) or obj is None:
+        return obj
+    return float(obj)

@@ -1,0 +1,244 @@
+"""Generate a whole synthetic survey in memory: terrain, plan, sidescan, MBES grid.
+
+Random streams are independent per stage (``[seed, stage]``) and per line
+(``[seed, 3, line]``), so the output is a pure function of the config.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sss2bathy.sim.config import GENERATOR_VERSION, SyntheticSurveyConfig
+from sss2bathy.sim.plan import PlannedLine, plan_survey
+from sss2bathy.sim.sonar import (
+    MaterialResponse,
+    RayCaster,
+    ReceiverCalibration,
+    absorption_db_per_m,
+    calibrate_receiver,
+    range_bins,
+    receive,
+    simulate_pings,
+    sound_speed_mps,
+)
+from sss2bathy.sim.terrain import (
+    Terrain,
+    TerrainSurface,
+    generate_terrain,
+    mbes_heights,
+    nlat_statistics,
+)
+from sss2bathy.survey import BathyGrid, SensorParams, SidescanLine, Survey, mask_reason_counts
+
+log = logging.getLogger(__name__)
+
+_STAGE_TERRAIN, _STAGE_PLAN, _STAGE_MBES, _STAGE_LINES = 0, 1, 2, 3
+
+
+@dataclass
+class _Physics:
+    """Everything a line simulation needs besides the terrain (picklable)."""
+
+    config: SyntheticSurveyConfig
+    response: MaterialResponse
+    calibration: ReceiverCalibration
+    absorption: float
+    sensor: SensorParams
+
+
+def simulate_line(
+    line: PlannedLine,
+    index: int,
+    physics: _Physics,
+    caster: RayCaster,
+    surface: TerrainSurface,
+) -> SidescanLine:
+    """Simulate one planned line into a :class:`SidescanLine` with ground-truth extras."""
+    cfg = physics.config
+    rng = np.random.default_rng([cfg.seed, _STAGE_LINES, index])
+    echoes = simulate_pings(
+        caster,
+        surface,
+        line.position,
+        line.rotation,
+        cfg.sonar,
+        physics.response,
+        rng,
+        absorption_db_m=physics.absorption,
+        altitudes=line.altitude_m,
+    )
+    intensity = receive(echoes.power_raw, cfg.sonar, physics.calibration, rng, physics.absorption)
+    return SidescanLine(
+        name=line.name,
+        time_s=line.time_s,
+        position=line.nav_position,
+        rotation=line.nav_rotation,
+        altitude_m=line.altitude_m.astype(np.float32),
+        intensity=intensity,
+        range_m=range_bins(cfg.sonar)[0].astype(np.float32),
+        sensor=physics.sensor,
+        extras={
+            "true_n_lat": echoes.n_lat,
+            "true_points": echoes.points,
+            "true_mask": echoes.mask,
+            "true_material": echoes.material,
+            "true_position": line.position,
+            "true_rotation": line.rotation,
+        },
+    )
+
+
+# Worker state for parallel line simulation (one terrain + ray caster per process).
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(terrain: Terrain, physics: _Physics) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    _WORKER["physics"] = physics
+    _WORKER["caster"] = RayCaster(terrain.to_mesh())
+    _WORKER["surface"] = TerrainSurface(terrain)
+
+
+def _worker_line(job: tuple[PlannedLine, int]) -> SidescanLine:
+    line, index = job
+    return simulate_line(line, index, _WORKER["physics"], _WORKER["caster"], _WORKER["surface"])
+
+
+def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
+    """Generate the survey described by ``config`` (in memory).
+
+    Returns:
+        the survey (lines, MBES grid, splits, origin, metadata with the config hash) and
+        the true terrain (heights, materials, texture, boulders).
+    """
+    t_start = time.perf_counter()
+    seed = config.seed
+    terrain = generate_terrain(
+        config.terrain, config.materials, np.random.default_rng([seed, _STAGE_TERRAIN])
+    )
+    t_terrain = time.perf_counter()
+    planned = plan_survey(
+        config.plan, config.sonar, terrain, np.random.default_rng([seed, _STAGE_PLAN])
+    )
+    sonar = config.sonar
+    absorption = absorption_db_per_m(
+        sonar.frequency_hz, sonar.temperature_c, sonar.salinity_ppt, sonar.ph
+    )
+    speed = sound_speed_mps(sonar.temperature_c, sonar.salinity_ppt)
+    response = MaterialResponse.from_params(config.materials)
+    reference_altitude = float(np.median(np.concatenate([ln.altitude_m for ln in planned])))
+    calibration = calibrate_receiver(
+        sonar,
+        response,
+        config.materials.index(config.materials.reference_material),
+        min(reference_altitude, 0.8 * sonar.max_range_m),
+        absorption,
+    )
+    physics = _Physics(
+        config,
+        response,
+        calibration,
+        absorption,
+        SensorParams(sonar.tilt_rad, sonar.beam_width_rad, sonar.frequency_hz, speed),
+    )
+
+    jobs = [(line, i) for i, line in enumerate(planned)]
+    workers = min(config.workers, len(jobs))
+    if workers > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(
+            workers, mp.get_context("spawn"), initializer=_worker_init, initargs=(terrain, physics)
+        ) as pool:
+            lines = list(pool.map(_worker_line, jobs))
+    else:
+        caster, surface = RayCaster(terrain.to_mesh()), TerrainSurface(terrain)
+        lines = []
+        for line, i in jobs:
+            lines.append(simulate_line(line, i, physics, caster, surface))
+            log.debug("simulated %s (%d pings)", line.name, len(line.time_s))
+    t_lines = time.perf_counter()
+
+    crs = config.origin.get("crs")
+    mbes = BathyGrid(
+        mbes_heights(
+            terrain, config.terrain.mbes_noise_m, np.random.default_rng([seed, _STAGE_MBES])
+        ),
+        0.0,
+        0.0,
+        terrain.cell_m,
+        crs,
+    )
+    splits = {
+        "train": [ln.name for ln in planned if ln.split == "train"],
+        "test": [ln.name for ln in planned if ln.split == "test"],
+    }
+    n_pings = sum(ln.n_pings for ln in lines)
+    masks = np.concatenate([ln.extras["true_mask"].ravel() for ln in lines])
+    true_nlat = np.concatenate(
+        [ln.extras["true_n_lat"][ln.extras["true_mask"] == 0].ravel() for ln in lines]
+    )
+    abs_nlat = np.abs(true_nlat[np.isfinite(true_nlat)])
+    metadata = {
+        "generator": "sss2bathy.sim",
+        "generator_version": GENERATOR_VERSION,
+        "config_hash": config.hash(),
+        "config": config.to_dict(),
+        "materials": list(config.materials.names),
+        "lines": {
+            ln.name: {
+                "split": ln.split,
+                "set": ln.line_set,
+                "heading_deg": round(math.degrees(ln.heading_rad), 3),
+                "pings": int(len(ln.time_s)),
+            }
+            for ln in planned
+        },
+        "physics": {
+            "absorption_db_per_m": absorption,
+            "sound_speed_mps": speed,
+            "receiver_gain": calibration.gain,
+            "noise_power": calibration.noise_power,
+            "reference_altitude_m": calibration.reference_altitude_m,
+        },
+        "terrain": {
+            "boulders": int(len(terrain.boulders)),
+            "depth_min_m": float(-terrain.heights.max()),
+            "depth_max_m": float(-terrain.heights.min()),
+            "material_fractions": {
+                name: float(np.mean(terrain.materials == i))
+                for i, name in enumerate(terrain.material_names)
+            },
+            "n_lat_grid": nlat_statistics(terrain.dzdx, terrain.dzdy),
+        },
+        "n_lat_valid_bins": {
+            "frac_below_0.2": float(np.mean(abs_nlat < 0.2)) if abs_nlat.size else float("nan"),
+            "frac_above_0.5": float(np.mean(abs_nlat > 0.5)) if abs_nlat.size else float("nan"),
+        },
+        "mask_counts": mask_reason_counts(masks),
+        "timing_s": {
+            "terrain": round(t_terrain - t_start, 3),
+            "sidescan": round(t_lines - t_terrain, 3),
+            "pings": int(n_pings),
+            "pings_per_s": round(n_pings / max(t_lines - t_terrain, 1e-9), 1),
+            "workers": int(workers),
+        },
+    }
+    survey = Survey(
+        name=config.name,
+        lines=lines,
+        grid=mbes,
+        splits=splits,
+        origin=dict(config.origin),
+        metadata=metadata,
+    )
+    return survey, terrain

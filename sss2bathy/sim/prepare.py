@@ -1,0 +1,123 @@
+"""Cached generation of a synthetic survey folder (``data/<name>/``).
+
+The folder is reused when its manifest carries the same config hash (the resolved
+config plus the generator version) and its files are all there; otherwise the survey is
+generated into a temporary folder beside it and renamed into place, so a half-written
+survey never exists under the final name. A lock file serialises concurrent preparers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sss2bathy.sim.config import SyntheticSurveyConfig
+from sss2bathy.survey import BathyGrid
+
+log = logging.getLogger(__name__)
+
+
+def _plain(cfg: Any) -> dict:
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        pass
+    if not isinstance(cfg, Mapping):
+        raise ValueError(f"cfg: expected a mapping (data.survey), found {type(cfg).__name__}")
+    return dict(cfg)
+
+
+@contextlib.contextmanager
+def _lock(path: Path) -> Iterator[None]:
+    """Exclusive advisory lock on ``path`` (no-op where ``fcntl`` is missing)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def cached_hash(folder: Path) -> str | None:
+    """The config hash of a complete survey folder, or None if it is missing or incomplete."""
+    manifest = folder / "survey.yaml"
+    if not manifest.is_file():
+        return None
+    try:
+        data = yaml.safe_load(manifest.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    lines = data.get("lines") or []
+    if not all((folder / "lines" / f"{name}.npz").is_file() for name in lines):
+        return None
+    if data.get("grid") and not (folder / data["grid"]).is_file():
+        return None
+    return (data.get("metadata") or {}).get("config_hash")
+
+
+def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = False) -> Path:
+    """Make sure ``data_dir/<cfg.name>/`` holds the survey ``cfg`` describes; return it.
+
+    Args:
+        cfg: the ``data.survey`` config (``kind: synthetic``), plain or OmegaConf.
+        data_dir: parent folder of the survey folders.
+        force: regenerate even if the cached folder matches.
+
+    Returns:
+        the survey folder (load it with :meth:`sss2bathy.survey.Survey.load`).
+    """
+    config = SyntheticSurveyConfig.from_mapping(_plain(cfg))
+    data_dir = Path(data_dir)
+    folder = data_dir / config.name
+    key = config.hash()
+    with _lock(data_dir / f".{config.name}.lock"):
+        if not force and cached_hash(folder) == key:
+            log.info("survey %s: cache hit (%s)", folder, key)
+            return folder
+        from sss2bathy.sim.generate import generate_survey
+
+        log.info("survey %s: generating (config hash %s)", folder, key)
+        t0 = time.perf_counter()
+        survey, terrain = generate_survey(config)
+        survey.metadata["timing_s"]["generate_total"] = round(time.perf_counter() - t0, 3)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{config.name}.tmp-", dir=data_dir))
+        try:
+            crs = config.origin.get("crs")
+            terrain.grid(crs).save_geotiff(tmp / "truth" / "heights.tif")
+            BathyGrid(
+                terrain.materials.astype("float32"), 0.0, 0.0, terrain.cell_m, crs
+            ).save_geotiff(tmp / "truth" / "materials.tif")
+            survey.save(tmp)
+            old = None
+            if folder.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{config.name}.old-", dir=data_dir))
+                folder.rename(old / "survey")
+            tmp.rename(folder)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        log.info(
+            "survey %s: %d lines in %.1f s", folder, len(survey.lines), time.perf_counter() - t0
+        )
+    return folder

@@ -1,0 +1,155 @@
+"""Whole tiny surveys: determinism, survey contents, the cache, pictures and the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import preset
+from PIL import Image
+
+import sss2bathy.sim.generate as generate_module
+from sss2bathy.cli.render import main as render_main
+from sss2bathy.sim.config import SyntheticSurveyConfig
+from sss2bathy.sim.generate import generate_survey
+from sss2bathy.sim.prepare import prepare_synthetic
+from sss2bathy.sim.render import render_terrain, render_waterfall, waterfall_image
+from sss2bathy.survey import MASK_VALID, MASK_WATER_COLUMN, Survey
+
+
+@pytest.fixture(scope="module")
+def tiny_d1():
+    return generate_survey(SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny")))
+
+
+def test_same_seed_gives_identical_arrays(tiny_d1):
+    survey, _ = tiny_d1
+    again, _ = generate_survey(SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny")))
+    for a, b in zip(survey.lines, again.lines, strict=True):
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+        np.testing.assert_array_equal(a.position, b.position)
+        for key in a.extras:
+            np.testing.assert_array_equal(a.extras[key], b.extras[key])
+    np.testing.assert_array_equal(survey.grid.heights, again.grid.heights)
+
+
+def test_tiny_survey_contents(tiny_d1):
+    survey, terrain = tiny_d1
+    assert len(survey.splits["train"]) == 2
+    assert len(survey.splits["test"]) == 2
+    assert survey.origin["crs"] == "EPSG:32633" and survey.origin["easting"] > 1e5
+    assert survey.grid.cell_size == 0.5 and survey.grid.crs == "EPSG:32633"
+    noise = survey.grid.heights - terrain.heights
+    assert 0.005 < noise.std() < 0.05  # MBES-like noise, small
+    for line in survey.lines:
+        P, B = line.n_pings, line.n_bins
+        assert B == 64 and 30 <= P <= 80
+        assert line.extras["true_n_lat"].shape == (P, 2, B)
+        assert line.extras["true_n_lat"].dtype == np.float32
+        assert line.extras["true_points"].shape == (P, 2, B, 3)
+        assert line.extras["true_mask"].dtype == np.uint8
+        assert np.all(np.isfinite(line.altitude_m))
+        # altitude = sonar height above the true seafloor directly below
+        below = terrain.sample_heights(line.position[:, 0], line.position[:, 1])
+        np.testing.assert_allclose(line.position[:, 2] - line.altitude_m, below, atol=1e-4)
+        mask = line.extras["true_mask"]
+        valid = mask == MASK_VALID
+        assert valid.mean() > 0.2
+        assert np.all(np.isfinite(line.extras["true_n_lat"][valid]))
+        # true points lie on the seabed at their bin's slant range
+        pts = line.extras["true_points"][valid]
+        z = terrain.sample_heights(pts[:, 0], pts[:, 1])
+        assert np.median(np.abs(pts[:, 2] - z)) < 0.02
+        rng = np.linalg.norm(pts - line.position[np.nonzero(valid)[0]], axis=1)
+        bins = np.broadcast_to(line.range_m, valid.shape)[valid]
+        assert np.all(np.abs(rng - bins) <= (line.range_m[1] - line.range_m[0]))
+        # the water column holds only noise: far darker than the seabed
+        water = mask == MASK_WATER_COLUMN
+        assert line.intensity[water].mean() < 0.1 * line.intensity[valid].mean()
+    meta = survey.metadata
+    assert (
+        meta["config_hash"]
+        == SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny")).hash()
+    )
+    assert meta["n_lat_valid_bins"]["frac_below_0.2"] > 0.8
+
+
+def test_d2_lines_are_all_test_lines():
+    cfg = SyntheticSurveyConfig.from_mapping(preset("synthetic_d2", "tiny"))
+    survey, _ = generate_survey(cfg)
+    assert survey.splits["train"] == []
+    assert sorted(survey.splits["test"]) == sorted(ln.name for ln in survey.lines)
+    assert len(survey.lines) == 4
+    assert survey.metadata["physics"]["absorption_db_per_m"] < 0.27  # fresh water
+
+
+def test_prepare_reuses_the_cache_and_regenerates_on_change(tmp_path, monkeypatch):
+    cfg = preset("synthetic_d1", "tiny")
+    folder = prepare_synthetic(cfg, tmp_path)
+    assert folder == tmp_path / "synthetic_d1_tiny"
+    survey = Survey.load(folder)
+    key = survey.metadata["config_hash"]
+    assert (folder / "truth" / "heights.tif").is_file()
+    stamp = (folder / "survey.yaml").stat().st_mtime_ns
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("regenerated although the cache matches")
+
+    with monkeypatch.context() as m:
+        m.setattr(generate_module, "generate_survey", refuse)
+        assert prepare_synthetic(cfg, tmp_path) == folder
+        with pytest.raises(AssertionError, match="regenerated"):
+            prepare_synthetic(cfg, tmp_path, force=True)
+    assert (folder / "survey.yaml").stat().st_mtime_ns == stamp
+
+    changed = preset("synthetic_d1", "tiny", seed=5)
+    assert prepare_synthetic(changed, tmp_path) == folder
+    assert Survey.load(folder).metadata["config_hash"] != key
+    # an incomplete folder (a line file lost) is regenerated, not trusted
+    (folder / "lines" / "line_000.npz").unlink()
+    prepare_synthetic(changed, tmp_path)
+    assert (folder / "lines" / "line_000.npz").is_file()
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name or ".old-" in p.name]
+
+
+def test_renders_and_cli(tmp_path, tiny_d1):
+    survey, _ = tiny_d1
+    line = survey.lines[0]
+    img = waterfall_image(line)
+    np.testing.assert_array_equal(
+        img[:, : line.n_bins], line.intensity[:, 0, ::-1]
+    )  # port mirrored
+    np.testing.assert_array_equal(img[:, line.n_bins :], line.intensity[:, 1])
+    wf = render_waterfall(line, tmp_path / "wf.png")
+    terrain = render_terrain(survey, tmp_path / "terrain.png")
+    for path in (wf, terrain):
+        with Image.open(path) as im:
+            assert im.size[0] > 300 and im.size[1] > 200
+    with pytest.raises(ValueError, match="pings"):
+        render_waterfall(line, tmp_path / "x.png", pings=(5, 2))
+    folder = survey.save(tmp_path / "survey")
+    render_main(
+        [
+            "waterfall",
+            "--survey",
+            str(folder),
+            "--line",
+            line.name,
+            "--out",
+            str(tmp_path / "c.png"),
+        ]
+    )
+    render_main(["terrain", "--survey", str(folder), "--out", str(tmp_path / "t.png")])
+    assert (tmp_path / "c.png").stat().st_size > 1000 and (tmp_path / "t.png").stat().st_size > 1000
+    with pytest.raises(SystemExit):
+        render_main(["waterfall", "--survey", str(folder), "--line", "nope", "--out", "x.png"])
+
+
+def test_parallel_workers_give_the_same_survey(tiny_d1):
+    survey, _ = tiny_d1
+    parallel, _ = generate_survey(
+        SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny", workers=2))
+    )
+    assert parallel.metadata["timing_s"]["workers"] == 2
+    for a, b in zip(survey.lines, parallel.lines, strict=True):
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+        np.testing.assert_array_equal(a.extras["true_n_lat"], b.extras["true_n_lat"])
