@@ -46,7 +46,11 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("data.min_valid_fraction", _num(lambda v: 0 <= v <= 1), "a fraction in [0, 1]"),
     ("data.val_fraction", fraction, "a fraction in [0, 1)"),
     ("data.num_workers", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
-    ("data.survey.grid.cell_size_m", positive, "a positive number (m)"),
+    ("data.survey.terrain.cell_m", positive, "a positive number (m)"),
+    ("data.survey.beam_width_deg", beam_width, "a value in (0, 180) degrees"),
+    ("data.survey.tilt_deg", tilt, "a value in [-90, 90] degrees"),
+    ("data.survey.n_bins", positive_int, "a positive integer"),
+    ("data.survey.mbes_cell_size", positive, "a positive number (m)"),
     ("data.survey.sonar.beam_width_deg", beam_width, "a value in (0, 180) degrees"),
     ("data.survey.sonar.tilt_deg", tilt, "a value in [-90, 90] degrees"),
     ("data.survey.sonar.n_bins", positive_int, "a positive integer"),
@@ -56,6 +60,10 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("data.survey.plan.ping_rate_hz", positive, "a positive number (Hz)"),
     ("model.w_height", non_negative, "a number >= 0"),
     ("model.eval_cell_m", positive, "a positive number (m)"),
+    ("model.eval_every_n_epochs", positive_int, "a positive integer"),
+    ("model.finder.tol_m", positive, "a positive tolerance (m)"),
+    ("model.sensor.shadow_threshold", non_negative, "a number >= 0"),
+    ("model.sensor.q", _num(lambda v: v >= 1), "an exponent >= 1"),
     ("model.optimizer.lr", positive, "a positive learning rate"),
 ]
 
