@@ -60,9 +60,7 @@ def normal_2d_loss(
     return torch.sqrt(sq + _SQRT_EPS).mean()
 
 
-def total_loss(
-    normal: torch.Tensor, height: torch.Tensor, w_height: float = 1.0
-) -> torch.Tensor:
+def total_loss(normal: torch.Tensor, height: torch.Tensor, w_height: float = 1.0) -> torch.Tensor:
     """Eq. 7: ``L = L_normal + w_H L_H``."""
     if w_height < 0:
         raise ValueError(f"w_height: expected a non-negative weight, found {w_height}")

@@ -1,0 +1,294 @@
+"""Reconstructed bathymetry maps: sampling a SIREN on a grid, scoring, rendering, export.
+
+* :func:`siren_to_grid` — the SIREN's heights at the cell centres of a grid (aligned with
+  the MBES grid, so GeoTIFFs overlay exactly in QGIS).
+* :func:`track_region_mask` — the *surveyed area* that maps are scored on: cells within
+  ``radius_m`` (the swath's horizontal half-width) of any sonar position of the lines used.
+* :func:`map_metrics` — MAE, STD and gradient cosine similarity
+  (:mod:`sss2bathy.metrics.bathy`) over that region.
+* :func:`gradient_hsv` — the paper's gradient picture: hue = direction
+  ``arctan2(dz/dx, dz/dy)`` (the paper's ``arctan(dx/dy)`` over the full circle),
+  saturation 1, value = gradient norm (scaled by ``vmax``).
+* :func:`render_map`, :func:`save_map_outputs` — PNGs and the files of a finished fit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
+from sss2bathy.survey import BathyGrid
+from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+
+
+def grid_over_bounds(
+    bounds: Sequence[float], cell_size: float, crs: str | None = None
+) -> BathyGrid:
+    """An all-NaN grid covering ``(xmin, ymin, xmax, ymax)`` (m) with ``cell_size`` cells
+    (for surveys without an MBES grid)."""
+    xmin, ymin, xmax, ymax = (float(b) for b in bounds)
+    if not (cell_size > 0 and xmax > xmin and ymax > ymin):
+        raise ValueError(
+            f"bounds, cell_size: expected xmin < xmax, ymin < ymax and a positive cell, "
+            f"found {tuple(bounds)}, {cell_size}"
+        )
+    nx = max(2, int(math.ceil((xmax - xmin) / cell_size)) + 1)
+    ny = max(2, int(math.ceil((ymax - ymin) / cell_size)) + 1)
+    return BathyGrid(np.full((ny, nx), np.nan, np.float32), xmin, ymin, cell_size, crs)
+
+
+@torch.no_grad()
+def siren_to_grid(siren: Any, like: BathyGrid, chunk: int = 65536) -> BathyGrid:
+    """Heights of ``siren`` at every cell centre of ``like`` (same geometry and CRS).
+
+    Args:
+        siren: a model with ``height(xy (N, 2)) -> (N,)`` (m).
+        like: the grid to align with (its heights are not read).
+        chunk: points per evaluation.
+    """
+    if not isinstance(like, BathyGrid):
+        raise ValueError(f"like: expected a BathyGrid, found {type(like).__name__}")
+    if chunk < 1:
+        raise ValueError(f"chunk: expected a positive number of points, found {chunk}")
+    param = next(iter(siren.parameters()), None)
+    device = param.device if param is not None else torch.device("cpu")
+    xx, yy = np.meshgrid(like.x, like.y)
+    xy = torch.from_numpy(np.stack([xx.ravel(), yy.ravel()], 1).astype(np.float32)).to(device)
+    z = torch.cat([siren.height(part) for part in xy.split(chunk)])
+    heights = z.float().cpu().numpy().reshape(like.shape)
+    return BathyGrid(heights, like.x0, like.y0, like.cell_size, like.crs)
+
+
+def track_region_mask(grid: BathyGrid, track_xy: np.ndarray, radius_m: float) -> np.ndarray:
+    """``(ny, nx)`` bool: cells whose centre lies within ``radius_m`` of a track point.
+
+    Args:
+        grid: the map grid.
+        track_xy: ``(M, 2)`` sonar positions (m) of the lines used.
+        radius_m: swath half-width on the ground (m).
+    """
+    from scipy.spatial import cKDTree
+
+    track_xy = np.asarray(track_xy, dtype=np.float64)
+    if track_xy.ndim != 2 or track_xy.shape[1] != 2 or track_xy.shape[0] == 0:
+        raise ValueError(f"track_xy: expected a non-empty (M, 2) array, found {track_xy.shape}")
+    if not radius_m > 0:
+        raise ValueError(f"radius_m: expected a positive radius (m), found {radius_m}")
+    xx, yy = np.meshgrid(grid.x, grid.y)
+    dist, _ = cKDTree(track_xy).query(
+        np.stack([xx.ravel(), yy.ravel()], 1), distance_upper_bound=radius_m * (1 + 1e-9)
+    )
+    return (dist <= radius_m).reshape(grid.shape)
+
+
+def map_metrics(
+    pred_grid: BathyGrid, true_grid: BathyGrid, region_mask: np.ndarray | None = None
+) -> dict[str, float]:
+    """``mae``, ``std``, ``grad_cs``, ``n_cells`` of a map against the MBES grid.
+
+    Both grids must share geometry (use :func:`siren_to_grid` with ``like=true_grid``).
+    """
+    same = pred_grid.shape == true_grid.shape and np.allclose(
+        [pred_grid.x0, pred_grid.y0, pred_grid.cell_size],
+        [true_grid.x0, true_grid.y0, true_grid.cell_size],
+    )
+    if not same:
+        raise ValueError(
+            "pred_grid: expected the geometry of true_grid "
+            f"{true_grid.shape, true_grid.x0, true_grid.y0, true_grid.cell_size}, found "
+            f"{pred_grid.shape, pred_grid.x0, pred_grid.y0, pred_grid.cell_size}"
+        )
+    return bathy_metrics(pred_grid.heights, true_grid.heights, true_grid.cell_size, region_mask)
+
+
+def gradient_hsv(dzdx: np.ndarray, dzdy: np.ndarray, vmax: float | None = None) -> np.ndarray:
+    """``(ny, nx, 3)`` float RGB in ``[0, 1]`` of a gradient map (the paper's HSV picture).
+
+    Hue = ``arctan2(dz/dx, dz/dy)`` mapped to ``[0, 1)``, saturation 1, value =
+    ``min(|grad| / vmax, 1)``; ``vmax`` defaults to the 99th percentile of the finite norms
+    (pass the MBES map's value to compare maps on one scale). NaN cells are black.
+    """
+    from matplotlib.colors import hsv_to_rgb
+
+    dzdx, dzdy = np.asarray(dzdx, dtype=np.float64), np.asarray(dzdy, dtype=np.float64)
+    if dzdx.ndim != 2 or dzdx.shape != dzdy.shape:
+        raise ValueError(
+            f"dzdx, dzdy: expected two 2D maps of one shape, found {dzdx.shape}, {dzdy.shape}"
+        )
+    norm = np.hypot(dzdx, dzdy)
+    finite = np.isfinite(norm)
+    if vmax is None:
+        vmax = float(np.percentile(norm[finite], 99)) if finite.any() else 1.0
+    vmax = vmax if vmax > 0 else 1.0
+    hue = np.mod(np.arctan2(dzdx, dzdy) / (2 * np.pi), 1.0)
+    hsv = np.stack(
+        [
+            np.where(finite, hue, 0.0),
+            np.ones_like(norm),
+            np.where(finite, np.clip(norm / vmax, 0.0, 1.0), 0.0),
+        ],
+        axis=-1,
+    )
+    return hsv_to_rgb(hsv).astype(np.float32)
+
+
+def render_map(
+    grid_or_array: BathyGrid | np.ndarray,
+    path: str | Path,
+    title: str,
+    cmap: str = "viridis",
+    symmetric: bool = False,
+    label: str = "height (m)",
+    extent: Sequence[float] | None = None,
+) -> Path:
+    """Write a PNG of a map (north up).
+
+    Args:
+        grid_or_array: a :class:`BathyGrid`, a ``(ny, nx)`` array (row 0 south) or an
+            ``(ny, nx, 3)`` RGB image (e.g. :func:`gradient_hsv`).
+        path: output ``.png``.
+        title: figure title.
+        cmap: colour map of scalar maps.
+        symmetric: colour limits ``+-max|value|`` (signed errors).
+        label: colour-bar label of scalar maps.
+        extent: ``(xmin, xmax, ymin, ymax)`` axes in metres (taken from a grid).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if isinstance(grid_or_array, BathyGrid):
+        data, extent = grid_or_array.heights, _extent(grid_or_array)
+    else:
+        data = np.asarray(grid_or_array)
+    if data.ndim not in (2, 3) or (data.ndim == 3 and data.shape[-1] != 3):
+        raise ValueError(f"grid_or_array: expected (ny, nx) or (ny, nx, 3), found {data.shape}")
+    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    kw: dict[str, Any] = {"origin": "lower", "extent": extent, "interpolation": "nearest"}
+    if data.ndim == 2:
+        finite = data[np.isfinite(data)]
+        if symmetric and finite.size:
+            lim = float(np.percentile(np.abs(finite), 99.5)) or 1.0
+            kw.update(vmin=-lim, vmax=lim)
+        im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, **kw)
+        fig.colorbar(im, ax=ax, label=label)
+    else:
+        ax.imshow(data, **kw)
+    ax.set_title(title)
+    ax.set_xlabel("x east (m)" if extent is not None else "column")
+    ax.set_ylabel("y north (m)" if extent is not None else "row")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def colorize(data: np.ndarray, cmap: str = "viridis", symmetric: bool = False) -> np.ndarray:
+    """``(ny, nx, 3)`` float RGB of a scalar map (NaN black), for image loggers.
+
+    Limits: the 0.5/99.5 percentiles, or ``+-`` the 99.5 percentile of ``|data|`` with
+    ``symmetric``. Row 0 stays row 0 (flip vertically to show north up).
+    """
+    import matplotlib
+
+    data = np.asarray(data, dtype=np.float64)
+    if data.ndim != 2:
+        raise ValueError(f"data: expected a 2D map, found shape {data.shape}")
+    finite = np.isfinite(data)
+    if not finite.any():
+        return np.zeros((*data.shape, 3), np.float32)
+    if symmetric:
+        hi = float(np.percentile(np.abs(data[finite]), 99.5)) or 1.0
+        lo = -hi
+    else:
+        lo, hi = (float(v) for v in np.percentile(data[finite], [0.5, 99.5]))
+        hi = hi if hi > lo else lo + 1.0
+    rgb = matplotlib.colormaps[cmap](np.clip((data - lo) / (hi - lo), 0.0, 1.0))[..., :3]
+    return np.where(finite[..., None], rgb, 0.0).astype(np.float32)
+
+
+def error_map(pred: BathyGrid, true: BathyGrid, region: np.ndarray | None) -> np.ndarray:
+    """``(ny, nx)`` signed error ``pred - true`` (m), NaN outside ``region``."""
+    err = signed_error(pred.heights, true.heights)
+    return np.where(region, err, np.nan) if region is not None else err
+
+
+def save_map_outputs(
+    out_dir: str | Path,
+    pred: BathyGrid,
+    true: BathyGrid | None = None,
+    region: np.ndarray | None = None,
+    metrics: dict[str, Any] | None = None,
+    title: str = "SIREN",
+) -> dict[str, Path]:
+    """Write a finished map: ``map.tif`` (GeoTIFF), ``map.npz``, ``metrics.json`` and PNGs
+    (``map.png``, ``gradient_hsv.png``, with an MBES grid also ``error.png``,
+    ``gt_gradient_hsv.png``). Returns the written paths by name."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"map_tif": out / "map.tif", "map_npz": out / "map.npz"}
+    pred.save_geotiff(paths["map_tif"])
+    arrays: dict[str, np.ndarray] = {
+        "heights": pred.heights,
+        "x0": np.float64(pred.x0),
+        "y0": np.float64(pred.y0),
+        "cell_size": np.float64(pred.cell_size),
+    }
+    if region is not None:
+        arrays["region"] = region
+    with atomic_path(paths["map_npz"]) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+    shown = BathyGrid(
+        np.where(region, pred.heights, np.nan) if region is not None else pred.heights,
+        pred.x0,
+        pred.y0,
+        pred.cell_size,
+    )
+    paths["map_png"] = render_map(shown, out / "map.png", f"{title}: bathymetry")
+    vmax = None
+    if true is not None:
+        tx, ty = map_gradient(true.heights, true.cell_size)
+        norm = np.hypot(tx, ty)
+        vmax = float(np.nanpercentile(norm, 99)) if np.isfinite(norm).any() else None
+        paths["gt_gradient_png"] = render_map(
+            gradient_hsv(tx, ty, vmax),
+            out / "gt_gradient_hsv.png",
+            "MBES: gradient (HSV)",
+            extent=_extent(true),
+        )
+        paths["error_png"] = render_map(
+            error_map(pred, true, region),
+            out / "error.png",
+            f"{title}: signed error",
+            cmap="RdBu_r",
+            symmetric=True,
+            label="error (m)",
+            extent=_extent(true),
+        )
+    px, py = map_gradient(shown.heights, pred.cell_size)
+    paths["gradient_png"] = render_map(
+        gradient_hsv(px, py, vmax),
+        out / "gradient_hsv.png",
+        f"{title}: gradient (HSV)",
+        extent=_extent(pred),
+    )
+    if metrics is not None:
+        paths["metrics"] = out / "metrics.json"
+        atomic_write_text(paths["metrics"], json.dumps(metrics, indent=2, sort_keys=True))
+    return paths
+
+
+def _extent(g: BathyGrid) -> tuple[float, float, float, float]:
+    h = g.cell_size / 2
+    return (g.x[0] - h, g.x[-1] + h, g.y[0] - h, g.y[-1] + h)

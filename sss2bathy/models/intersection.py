@@ -1,0 +1,367 @@
+"""Where a height field crosses the sidescan's isotemporal arcs (paper eq. 10-12).
+
+For a bin with sonar position ``s``, rotation ``R``, slant range ``r`` and side ``sigma``
+the arc is ``p(theta) = s + r R [0, sigma cos(theta), -sin(theta)]`` (eq. 10) and the
+crossing is a root of the signed vertical distance (eq. 11)
+
+    ``f(theta) = Phi(p_x(theta), p_y(theta)) - p_z(theta)``,
+
+which is negative while the arc point is above the seafloor and positive below it. The
+beam is ``theta in [theta_lo, theta_hi] = [tilt - alpha/2, tilt + alpha/2]``; theta grows
+from the most horizontal direction (far, high) towards nadir (near, low).
+
+Solvers (all vectorised over every bin at once, under ``no_grad``):
+
+* ``"gd"`` — the paper's fixed-step gradient descent (eq. 12),
+  ``theta <- theta - (lambda / r) d/dtheta f^2``, from ``theta0`` (the warm start) or the
+  tilt, for at most ``max_iter`` steps. A bin stops moving once ``|f| <= tol_m``.
+* ``"newton"`` — safeguarded Newton on a bracket: a coarse scan of ``n_scan`` angles over
+  the beam finds the *first* crossing (the smallest theta where ``f`` turns from negative,
+  above ground, to ``>= 0``, below ground); the iteration starts at the regula-falsi point
+  of that bracket, takes Newton steps ``theta - f / f'`` and falls back to bisection
+  whenever a step leaves the bracket; the bracket shrinks with every evaluation.
+* ``"bisection"`` — bisection on the same bracket (robust reference, height-only).
+
+Warm start (``theta0``; NaN = unknown, ``+inf`` = "no crossing last time"), bracketing
+solvers: first ``f`` (and ``f'`` for Newton) at ``theta0``: if ``|f| <= tol_m`` (and the
+arc goes into the ground there, ``f' > 0``) the bin is done after one evaluation (Newton
+also takes the free step ``theta0 - f/f'``). Otherwise one more height on the root's side
+(``theta0 + warm_bracket_rad`` if ``theta0`` is above ground, else ``-``; widened 4x and 16x
+for the bins that miss) gives a small bracket that replaces the scan. The surface moves
+little between epochs, so this is the common case after the first epoch; bins that still
+miss are scanned cold. A warm start trusts the previous crossing to still be the first.
+Bins marked ``+inf`` are re-scanned only if the beam's two ends now enclose a crossing
+(two height evaluations instead of a scan; an arc that starts and ends above ground but
+dips into a rock in between stays invalid until the bin is reset to NaN).
+
+A bin is valid when its crossing lies in the beam and ``|f| <= tol_m`` at the returned
+angle; invalid bins get ``theta = NaN``. ``n_iter`` counts the solver's surface
+evaluations per bin, with a derivative (Newton, gradient descent) or height-only
+(bisection), including the warm-start check at ``theta0``; the extra height-only
+evaluations of the scan and of the warm brackets are not included.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Protocol
+
+import torch
+
+SOLVERS = ("newton", "gd", "bisection")
+DEFAULT_MAX_ITER = {"newton": 16, "bisection": 48, "gd": 400}
+# Warm brackets tried before a cold scan: theta0 -+ warm_bracket_rad * factor.
+WARM_EXPANSION = (1.0, 4.0, 16.0)
+
+
+class HeightField(Protocol):
+    """A surface ``z = Phi(x, y)``: what the finder needs (a :class:`~.siren.Siren` is one)."""
+
+    def height(self, xy: torch.Tensor) -> torch.Tensor: ...
+
+    def height_and_gradient(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+def _chunked(fn: Callable, chunk: int, *tensors: torch.Tensor):
+    """Apply ``fn`` to row chunks of ``tensors`` and concatenate (CPU caches like chunks)."""
+    n = tensors[0].shape[0]
+    if n <= chunk:
+        return fn(*tensors)
+    outs = [fn(*parts) for parts in zip(*(t.split(chunk) for t in tensors), strict=True)]
+    if isinstance(outs[0], tuple):
+        return tuple(torch.cat(o) for o in zip(*outs, strict=True))
+    return torch.cat(outs)
+
+
+class _Arcs:
+    """Arc geometry of ``N`` bins: ``p(theta) = s + u cos(theta) - w sin(theta)``."""
+
+    def __init__(self, sonar, R, range_m, side) -> None:
+        sigma = 1.0 - 2.0 * side.to(sonar.dtype)
+        r = range_m.to(sonar.dtype)
+        self.sonar = sonar
+        self.u = (sigma * r).unsqueeze(-1) * R[..., :, 1]  # r sigma (R e_y)
+        self.w = r.unsqueeze(-1) * R[..., :, 2]  # r (R e_z)
+        self.r = r
+
+    def point(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        s, u, w = self.sonar[idx], self.u[idx], self.w[idx]
+        return s + u * torch.cos(theta).unsqueeze(-1) - w * torch.sin(theta).unsqueeze(-1)
+
+    def tangent(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        u, w = self.u[idx], self.w[idx]
+        return -u * torch.sin(theta).unsqueeze(-1) - w * torch.cos(theta).unsqueeze(-1)
+
+
+class _Residual:
+    """``f(theta)`` and ``f'(theta)`` of a subset of bins, evaluated in chunks."""
+
+    def __init__(self, surface: HeightField, arcs: _Arcs, chunk: int) -> None:
+        self.surface, self.arcs, self.chunk = surface, arcs, chunk
+
+    def value(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        p = self.arcs.point(theta, idx)
+        z = _chunked(self.surface.height, self.chunk, p[:, :2].contiguous())
+        return z.to(p.dtype) - p[:, 2]
+
+    def value_and_slope(
+        self, theta: torch.Tensor, idx: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        p = self.arcs.point(theta, idx)
+        t = self.arcs.tangent(theta, idx)
+        z, grad = _chunked(self.surface.height_and_gradient, self.chunk, p[:, :2].contiguous())
+        dz = (grad.to(p.dtype) * t[:, :2]).sum(-1)
+        return z.to(p.dtype) - p[:, 2], dz - t[:, 2]
+
+
+def _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, max_iter):
+    if not isinstance(sonar, torch.Tensor) or sonar.ndim != 2 or sonar.shape[1] != 3:
+        raise ValueError(f"sonar: expected a (N, 3) tensor, found {getattr(sonar, 'shape', sonar)}")
+    n = sonar.shape[0]
+    if not isinstance(R, torch.Tensor) or R.shape != (n, 3, 3):
+        raise ValueError(f"R: expected shape ({n}, 3, 3), found {getattr(R, 'shape', R)}")
+    for name, t in (("range_m", range_m), ("side", side)):
+        if not isinstance(t, torch.Tensor) or t.shape != (n,):
+            raise ValueError(f"{name}: expected shape ({n},), found {getattr(t, 'shape', t)}")
+    if side.is_floating_point():
+        raise ValueError("side: expected integer side indices (0 port, 1 starboard), found floats")
+    if theta0 is not None and (not isinstance(theta0, torch.Tensor) or theta0.shape != (n,)):
+        raise ValueError(
+            f"theta0: expected None or shape ({n},), found {getattr(theta0, 'shape', theta0)}"
+        )
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: expected one of {SOLVERS}, found {solver!r}")
+    lo, hi = (float(v) for v in theta_limits)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(
+            f"theta_limits: expected finite (lo, hi) with lo < hi, found {theta_limits}"
+        )
+    if not (tol_m > 0):
+        raise ValueError(f"tol_m: expected a positive tolerance in metres, found {tol_m}")
+    if max_iter is not None and int(max_iter) < 1:
+        raise ValueError(f"max_iter: expected >= 1 or None, found {max_iter}")
+    return lo, hi
+
+
+@torch.no_grad()
+def find_intersections(
+    surface: HeightField,
+    sonar: torch.Tensor,
+    R: torch.Tensor,
+    range_m: torch.Tensor,
+    side: torch.Tensor,
+    theta_limits: tuple[float, float],
+    solver: str = "newton",
+    theta0: torch.Tensor | None = None,
+    max_iter: int | None = None,
+    tol_m: float = 1e-3,
+    gd_step: float = 0.01,
+    n_scan: int = 16,
+    warm_bracket_rad: float = math.radians(0.5),
+    chunk: int = 8192,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Depression angle where each bin's isotemporal arc crosses ``surface``.
+
+    Args:
+        surface: the height field (e.g. a :class:`~sss2bathy.models.siren.Siren`).
+        sonar: ``(N, 3)`` sonar positions (m, world ENU).
+        R: ``(N, 3, 3)`` vehicle -> world rotations.
+        range_m: ``(N,)`` slant ranges (m).
+        side: ``(N,)`` long, 0 port / 1 starboard.
+        theta_limits: ``(theta_lo, theta_hi)`` beam limits (rad).
+        solver: ``"newton"`` | ``"gd"`` | ``"bisection"`` (see the module docstring).
+        theta0: ``(N,)`` warm-start angles (rad), NaN where unknown; ``None`` = cold.
+        max_iter: solver iterations (default per solver: :data:`DEFAULT_MAX_ITER`).
+        tol_m: convergence tolerance on ``|f|``, the vertical distance (m).
+        gd_step: ``lambda`` of eq. 12 (``"gd"`` only), m^-1 * rad * m.
+        n_scan: angles of the coarse bracketing scan over the beam (bracketing solvers).
+        warm_bracket_rad: half-width of the warm-start bracket (rad).
+        chunk: points per surface evaluation.
+
+    Returns:
+        ``theta (N,)`` (rad, NaN where invalid), ``valid (N,)`` bool and
+        ``n_iter (N,)`` long (solver evaluations per bin, see the module docstring).
+    """
+    lo, hi = _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, max_iter)
+    if n_scan < 2:
+        raise ValueError(f"n_scan: expected >= 2 scan angles, found {n_scan}")
+    max_iter = int(max_iter) if max_iter is not None else DEFAULT_MAX_ITER[solver]
+    arcs = _Arcs(sonar, R, range_m, side)
+    res = _Residual(surface, arcs, int(chunk))
+    if solver == "gd":
+        return _gradient_descent(res, arcs, lo, hi, theta0, max_iter, tol_m, gd_step)
+    return _bracketed_solve(
+        res, sonar.shape[0], lo, hi, theta0, solver, n_scan, warm_bracket_rad, tol_m, max_iter
+    )
+
+
+def _gradient_descent(res, arcs, lo, hi, theta0, max_iter, tol_m, step):
+    n = arcs.r.shape[0]
+    dev, dt = arcs.r.device, arcs.r.dtype
+    theta = torch.full((n,), (lo + hi) / 2, device=dev, dtype=dt)
+    if theta0 is not None:
+        warm = torch.isfinite(theta0)
+        theta = torch.where(warm, theta0.to(dt), theta)
+    converged = torch.zeros(n, dtype=torch.bool, device=dev)
+    n_iter = torch.zeros(n, dtype=torch.long, device=dev)
+    active = torch.arange(n, device=dev)
+    for _ in range(max_iter):
+        if active.numel() == 0:
+            break
+        th = theta[active]
+        f, df = res.value_and_slope(th, active)
+        n_iter[active] += 1
+        done = f.abs() <= tol_m
+        converged[active[done]] = True
+        # eq. 12: theta <- theta - (lambda / r) d(f^2)/dtheta
+        theta[active] = torch.where(done, th, th - step / arcs.r[active] * 2.0 * f * df)
+        keep = ~done & torch.isfinite(theta[active])
+        active = active[keep]
+    valid = converged & (theta >= lo) & (theta <= hi)
+    return torch.where(valid, theta, torch.nan), valid, n_iter
+
+
+class _Solve:
+    """Per-bin state of a bracketing solve: result, brackets ``f(a) < 0 <= f(b)``, counts."""
+
+    def __init__(self, n: int, device: torch.device, dtype: torch.dtype) -> None:
+        def nan():
+            return torch.full((n,), torch.nan, device=device, dtype=dtype)
+
+        self.theta, self.a, self.b, self.fa, self.fb = nan(), nan(), nan(), nan(), nan()
+        self.converged = torch.zeros(n, dtype=torch.bool, device=device)
+        self.bracketed = torch.zeros(n, dtype=torch.bool, device=device)
+        self.n_iter = torch.zeros(n, dtype=torch.long, device=device)
+
+    def set_bracket(self, idx, a, b, fa, fb) -> None:
+        self.a[idx], self.b[idx], self.fa[idx], self.fb[idx] = a, b, fa, fb
+        self.bracketed[idx] = True
+
+    def set_done(self, idx, theta) -> None:
+        self.theta[idx] = theta
+        self.converged[idx] = True
+
+
+def _bracketed_solve(res, n, lo, hi, theta0, solver, n_scan, warm_delta, tol_m, max_iter):
+    dev, dt = res.arcs.r.device, res.arcs.r.dtype
+    st = _Solve(n, dev, dt)
+    cold = torch.ones(n, dtype=torch.bool, device=dev)
+    if theta0 is not None:
+        cold = _warm_start(res, st, lo, hi, theta0.to(dt), solver, warm_delta, tol_m)
+    _scan(res, st, cold.nonzero().squeeze(-1), lo, hi, n_scan, tol_m, dt)
+    _refine(res, st, solver, max_iter, tol_m)
+    return st.theta, st.converged, st.n_iter
+
+
+def _warm_start(res, st, lo, hi, theta0, solver, warm_delta, tol_m):
+    """Solve or bracket the warm-started bins; returns the ``(N,)`` mask still to scan."""
+    cold = torch.isnan(theta0) | (theta0 == -torch.inf)
+    # Previously no crossing (+inf): re-scan only if the beam's ends now enclose one.
+    gone = (theta0 == torch.inf).nonzero().squeeze(-1)
+    if gone.numel():
+        f_end = res.value(
+            torch.cat(
+                [
+                    torch.full_like(gone, lo, dtype=theta0.dtype),
+                    torch.full_like(gone, hi, dtype=theta0.dtype),
+                ]
+            ),
+            torch.cat([gone, gone]),
+        )
+        f_lo, f_hi = f_end[: gone.numel()], f_end[gone.numel() :]
+        cold[gone] = ((f_lo < 0) & (f_hi >= 0)) | (f_lo.abs() <= tol_m) | (f_hi.abs() <= tol_m)
+    idx = (torch.isfinite(theta0) & (theta0 >= lo) & (theta0 <= hi)).nonzero().squeeze(-1)
+    cold[torch.isfinite(theta0) & ((theta0 < lo) | (theta0 > hi))] = True
+    if idx.numel() == 0:
+        return cold
+    t0 = theta0[idx]
+    # 1. Is the previous crossing still on the surface?
+    if solver == "newton":
+        f0, df0 = res.value_and_slope(t0, idx)
+        t_new = t0 - f0 / df0  # the free last Newton step
+        ok = (f0.abs() <= tol_m) & (df0 > 0) & (t_new >= lo) & (t_new <= hi)
+    else:
+        f0 = res.value(t0, idx)
+        t_new, ok = t0, f0.abs() <= tol_m
+    st.n_iter[idx] += 1
+    st.set_done(idx[ok], t_new[ok])
+    idx, t0, f0 = idx[~ok], t0[~ok], f0[~ok]
+    # 2. One-sided brackets towards the root (above ground: deeper), widening.
+    above = f0 < 0
+    for factor in WARM_EXPANSION:
+        if idx.numel() == 0:
+            break
+        far = torch.where(above, t0 + warm_delta * factor, t0 - warm_delta * factor).clamp(lo, hi)
+        f_far = res.value(far, idx)
+        a, b = torch.where(above, t0, far), torch.where(above, far, t0)
+        fa, fb = torch.where(above, f0, f_far), torch.where(above, f_far, f0)
+        ok = (fa < 0) & (fb >= 0)
+        st.set_bracket(idx[ok], a[ok], b[ok], fa[ok], fb[ok])
+        idx, t0, f0, above = idx[~ok], t0[~ok], f0[~ok], above[~ok]
+    cold[idx] = True
+    return cold
+
+
+def _scan(res, st, active, lo, hi, n_scan, tol_m, dt):
+    """Cold scan: the first grid angle with ``f >= 0`` after one with ``f < 0``."""
+    if active.numel() == 0:
+        return
+    grid = torch.linspace(lo, hi, n_scan, device=active.device, dtype=dt)
+    f_prev = res.value(grid[0].expand(active.numel()), active)
+    # At the beam's upper edge the arc must still be above ground, or the crossing is
+    # above the beam (out of beam) -- unless it lies on the edge itself (within tol_m).
+    edge = (f_prev >= 0) & (f_prev <= tol_m)
+    st.set_bracket(active[edge], grid[0], grid[0], f_prev[edge], f_prev[edge])
+    active, f_prev = active[f_prev < 0], f_prev[f_prev < 0]
+    for k in range(1, n_scan):
+        if active.numel() == 0:
+            return
+        f_k = res.value(grid[k].expand(active.numel()), active)
+        hit = f_k >= 0
+        st.set_bracket(active[hit], grid[k - 1], grid[k], f_prev[hit], f_k[hit])
+        keep = ~hit & torch.isfinite(f_k)
+        active, f_prev = active[keep], f_k[keep]
+    # Still above ground at the lower beam edge: a crossing only if it is on the edge.
+    edge = f_prev.abs() <= tol_m
+    st.set_bracket(active[edge], grid[-1], grid[-1], f_prev[edge], f_prev[edge])
+
+
+def _refine(res, st, solver, max_iter, tol_m):
+    """Newton-with-bisection or pure bisection inside the brackets."""
+    active = (st.bracketed & ~st.converged).nonzero().squeeze(-1)
+    a, b, fa, fb = st.a, st.b, st.fa, st.fb
+    # A bracket end already on the surface (|f(b)| <= tol, e.g. a beam edge) is the answer.
+    exact = fb[active].abs() <= tol_m
+    st.set_done(active[exact], b[active[exact]])
+    active = active[~exact]
+    if solver == "newton":
+        # Start at the regula-falsi point of the bracket (exact for a locally planar arc).
+        x = a[active] - fa[active] * (b[active] - a[active]) / (fb[active] - fa[active])
+    else:
+        x = 0.5 * (a[active] + b[active])
+    for _ in range(max_iter):
+        if active.numel() == 0:
+            break
+        if solver == "newton":
+            f, df = res.value_and_slope(x, active)
+        else:
+            f, df = res.value(x, active), None
+        st.n_iter[active] += 1
+        done = f.abs() <= tol_m
+        below = f >= 0
+        a_act = torch.where(below, a[active], x)
+        b_act = torch.where(below, x, b[active])
+        a[active], b[active] = a_act, b_act
+        mid = 0.5 * (a_act + b_act)
+        if df is not None:
+            step = x - f / df
+            inside = torch.isfinite(step) & (step >= a_act) & (step <= b_act)
+            x_next = torch.where(inside, step, mid)
+            # A converged bin still takes its last Newton step (free, and quadratically
+            # closer); outside the bracket it keeps x.
+            x_done = torch.where(inside, step, x)
+        else:
+            x_next, x_done = mid, x
+        st.set_done(active[done], x_done[done])
+        active, x = active[~done], x_next[~done]

@@ -1,0 +1,426 @@
+"""SIREN bathymetry fit (paper "Training SIREN"), and SIREN-Direct-Fit.
+
+One training step (``direct_fit=False``):
+
+1. the batch's bins (ping x side x bin) that the sensor model can use (``bin_mask``);
+2. under ``no_grad``, the depression angle where each bin's isotemporal arc crosses the
+   SIREN (:func:`~sss2bathy.models.intersection.find_intersections`), warm-started from
+   the bin's previous solution (``theta_cache (n_pings, 2, n_bins)``, NaN = none yet,
+   +inf = no crossing last time);
+3. at the valid crossings, the SIREN's height gradient with a graph
+   (:meth:`~sss2bathy.models.siren.Siren.height_and_gradient`), the head-plane normal
+   (eq. 1-3) and an :class:`~sss2bathy.models.sensors.ArcGeometry`;
+4. ``loss = sensor.loss(geo, target) + w_height * height_loss(altimeter)`` (eq. 7-9).
+
+Without a sensor model (``sensor=None``) the loss is the altimeter height loss alone: the
+heights-only baseline. ``direct_fit=True`` (SIREN-Direct-Fit, the paper's capacity check)
+replaces all that by
+``mean |Phi(x, y) - z_MBES|`` over ``direct_fit_points`` random MBES cells of the scored
+region per step.
+
+The SIREN's frame (input bounds, output height range) comes from the datamodule in
+:meth:`SirenModule.setup` (``set_frame``; sonar tracks and altimeter heights only, never
+the MBES grid). The SIREN itself is built in ``__init__`` (so checkpoints load into an
+identically shaped model) and its frame is a persistent buffer (so a loaded checkpoint
+keeps the frame it was trained with).
+
+Evaluation: every ``eval_every_n_epochs`` epochs (validation loop, one dummy batch) and
+at the end of the fit the SIREN is sampled on the MBES grid (or, without one, on a grid of
+``eval_cell_m`` over the bounds) and scored over the *surveyed area*: cells within the
+swath half-width (``sqrt(r_max^2 - median altitude^2)``, or ``region_radius_m``) of any
+sonar position of the lines used. Logged: ``val/mae``, ``val/std``, ``val/grad_cs``
+(:mod:`sss2bathy.metrics.bathy`); images by :class:`SirenMapImages` (TensorBoard only).
+At the end of the fit ``map.tif``, ``map.npz``, ``metrics.json`` and PNGs go to
+``output_dir`` (default: the logger's ``save_dir``, i.e. the Hydra run folder, else the
+trainer's ``default_root_dir``), and the hyper-parameters are logged with the final
+metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from pytorch_lightning.callbacks import Callback
+
+from sss2bathy.eval.maps import (
+    colorize,
+    error_map,
+    gradient_hsv,
+    grid_over_bounds,
+    map_metrics,
+    save_map_outputs,
+    siren_to_grid,
+    track_region_mask,
+)
+from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
+from sss2bathy.losses.siren import height_loss, total_loss
+from sss2bathy.metrics.bathy import map_gradient
+from sss2bathy.models.intersection import SOLVERS, find_intersections
+from sss2bathy.models.sensors import ArcGeometry, SensorModel
+from sss2bathy.models.siren import Siren
+from sss2bathy.survey import BathyGrid
+
+log = logging.getLogger(__name__)
+
+FINDER_DEFAULTS: dict[str, Any] = {
+    "solver": "newton",
+    "max_iter": None,
+    "tol_m": 1e-3,
+    "gd_step": 0.01,
+    "warm_start": True,
+    "n_scan": 16,
+    "warm_bracket_deg": 0.5,
+    "chunk": 8192,
+}
+
+
+def _finder_config(finder: Mapping[str, Any] | None) -> dict[str, Any]:
+    cfg = dict(FINDER_DEFAULTS)
+    given = dict(finder or {})
+    unknown = sorted(set(given) - set(cfg))
+    if unknown:
+        raise ValueError(f"finder: expected keys among {sorted(cfg)}, found unknown {unknown}")
+    cfg.update(given)
+    if cfg["solver"] not in SOLVERS:
+        raise ValueError(f"finder.solver: expected one of {SOLVERS}, found {cfg['solver']!r}")
+    return cfg
+
+
+def arc_geometry(
+    siren: Siren,
+    batch: dict[str, torch.Tensor],
+    use: torch.Tensor,
+    theta_limits: tuple[float, float],
+    finder: Mapping[str, Any],
+    theta_cache: torch.Tensor | None = None,
+) -> tuple[ArcGeometry, dict[str, torch.Tensor]]:
+    """Crossings of a batch's bins with the SIREN, and the SIREN's normals there.
+
+    Args:
+        siren: the bathymetry.
+        batch: ping batch (``position``, ``rotation``, ``range_m``, ``line``, ``index``).
+        use: ``(P, 2, B)`` bool, the bins to use (the sensor model's ``bin_mask``).
+        theta_limits: beam limits (rad).
+        finder: finder settings (:data:`FINDER_DEFAULTS` keys).
+        theta_cache: ``(n_pings, 2, B)`` per-bin warm-start angles indexed by the batch's
+            ``index`` (NaN = none yet, +inf = no crossing last time), updated in place;
+            ``None`` = cold solves.
+
+    Returns:
+        ``(geo, stats)``: the valid bins' :class:`ArcGeometry` (gradient and normals with
+        graph; ``geo.ping`` indexes the batch) and finder statistics (``valid_fraction``,
+        ``finder_iters`` = mean solver evaluations per bin).
+    """
+    finder = _finder_config(finder)
+    pi, si, bi = use.nonzero(as_tuple=True)
+    sonar, rot = batch["position"][pi], batch["rotation"][pi]
+    range_m = batch["range_m"][bi]
+    warm = finder["warm_start"] and theta_cache is not None
+    cache_idx = (batch["index"][pi], si, bi)
+    theta, valid, n_iter = find_intersections(
+        siren,
+        sonar,
+        rot,
+        range_m,
+        si,
+        theta_limits,
+        solver=finder["solver"],
+        theta0=theta_cache[cache_idx] if warm else None,
+        max_iter=finder["max_iter"],
+        tol_m=finder["tol_m"],
+        gd_step=finder["gd_step"],
+        n_scan=finder["n_scan"],
+        warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
+        chunk=finder["chunk"],
+    )
+    if warm:
+        # +inf marks "no crossing": next time only the beam's ends are checked
+        theta_cache[cache_idx] = torch.where(valid, theta, torch.inf).to(theta_cache.dtype)
+    v = valid.nonzero().squeeze(-1)
+    pi, si, bi = pi[v], si[v], bi[v]
+    sonar, rot, range_m, theta = sonar[v], rot[v], range_m[v], theta[v]
+    points = arc_point(sonar, rot, range_m, theta, si)
+    # in chunks: CPU caches/allocators like a few thousand points per product
+    grad = torch.cat(
+        [siren.height_and_gradient(c)[1] for c in points[:, :2].split(finder["chunk"])]
+    )
+    n_lat, n_up = head_plane_normal_from_gradient(grad[:, 0], grad[:, 1], rot, si)
+    geo = ArcGeometry(
+        points=points,
+        theta=theta,
+        range_m=range_m,
+        side=si,
+        sonar=sonar,
+        rotation=rot,
+        grad=grad,
+        n_lat=n_lat,
+        n_up=n_up,
+        ping=pi,
+        bin=bi,
+        line=batch["line"][pi],
+    )
+    n_bins = max(int(valid.numel()), 1)
+    stats = {"valid_fraction": valid.sum() / n_bins, "finder_iters": n_iter.sum() / n_bins}
+    return geo, stats
+
+
+class SirenModule(pl.LightningModule):
+    """Fits a :class:`~sss2bathy.models.siren.Siren` to sidescan + altimeter data.
+
+    Args:
+        siren: a ``Siren`` or a callable returning one (a Hydra ``_partial_``).
+        sensor: the sensor model (normals or Lambertian); ``None``: altimeter heights
+            alone (the baseline the sidescan must improve on), or with ``direct_fit``.
+        w_height: ``w_H`` of eq. 7.
+        optimizer: partial ``torch.optim`` optimizer (called with the parameters).
+        scheduler: partial LR scheduler (called with the optimizer), stepped per epoch.
+        finder: intersection-finder settings, keys of :data:`FINDER_DEFAULTS`
+            (``warm_bracket_deg`` in degrees).
+        eval_every_n_epochs: epochs between map evaluations (also at the end of the fit).
+        eval_cell_m: map cell (m) when the survey has no MBES grid.
+        direct_fit: fit the MBES grid directly (SIREN-Direct-Fit).
+        direct_fit_points: MBES cells per direct-fit step.
+        region_radius_m: scored area's radius around the tracks (m); default the swath
+            half-width from the datamodule.
+        output_dir: where the final map files go (default: see the module docstring).
+        log_images: add the :class:`SirenMapImages` callback.
+    """
+
+    def __init__(
+        self,
+        siren: Siren | Callable[[], Siren],
+        sensor: SensorModel | None = None,
+        w_height: float = 1.0,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+        scheduler: Callable[..., Any] | None = None,
+        finder: Mapping[str, Any] | None = None,
+        eval_every_n_epochs: int = 50,
+        eval_cell_m: float = 0.5,
+        direct_fit: bool = False,
+        direct_fit_points: int = 16384,
+        region_radius_m: float | None = None,
+        output_dir: str | None = None,
+        log_images: bool = True,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["siren", "sensor"], logger=False)
+        self.siren = siren if isinstance(siren, Siren) else siren()
+        if not isinstance(self.siren, Siren):
+            raise ValueError(f"siren: expected a Siren or a factory of one, found {type(siren)}")
+        if sensor is not None and not isinstance(sensor, SensorModel):
+            raise ValueError(f"sensor: expected a SensorModel, found {type(sensor).__name__}")
+        if w_height < 0:
+            raise ValueError(f"w_height: expected a non-negative weight, found {w_height}")
+        if int(eval_every_n_epochs) < 1:
+            raise ValueError(f"eval_every_n_epochs: expected >= 1, found {eval_every_n_epochs}")
+        self.sensor = sensor
+        self.w_height = float(w_height)
+        self.optimizer_factory = optimizer or (lambda params: torch.optim.Adam(params, lr=2e-4))
+        self.scheduler_factory = scheduler
+        self.finder = _finder_config(finder)
+        self.eval_every_n_epochs = int(eval_every_n_epochs)
+        self.eval_cell_m = float(eval_cell_m)
+        self.direct_fit = bool(direct_fit)
+        self.direct_fit_points = int(direct_fit_points)
+        self.region_radius_m = region_radius_m
+        self.output_dir = output_dir
+        self.log_images = bool(log_images)
+        self.register_buffer("framed", torch.tensor(False))
+        self.register_buffer("theta_cache", torch.zeros(0, 2, 0), persistent=False)
+        self.register_buffer("fit_cells", torch.zeros(0, 3), persistent=False)
+        self.theta_limits: tuple[float, float] | None = None
+        self.eval_like: BathyGrid | None = None
+        self.true_grid: BathyGrid | None = None
+        self.region: np.ndarray | None = None
+        self.last_eval: dict[str, Any] | None = None
+
+    # ------------------------------------------------------------------ set-up
+    def setup(self, stage: str) -> None:
+        dm = self.trainer.datamodule if self.trainer is not None else None
+        if dm is None or getattr(dm, "bounds", None) is None:
+            raise ValueError(
+                "datamodule: expected a set-up PingAltimeterDataModule (bounds, z_range, "
+                "sensor, grid) passed to the trainer, found none"
+            )
+        if not bool(self.framed):
+            self.siren.set_frame(dm.bounds, dm.z_range)
+            self.framed.fill_(True)
+        self.theta_limits = dm.sensor.beam_limits_rad
+        self.theta_cache = torch.full((dm.n_pings, 2, dm.table.n_bins), torch.nan)
+        self.true_grid = dm.grid
+        self.eval_like = (
+            dm.grid if dm.grid is not None else grid_over_bounds(dm.bounds, self.eval_cell_m)
+        )
+        radius = self.region_radius_m or dm.swath_half_width_m
+        self.region = track_region_mask(self.eval_like, dm.track_xy, radius)
+        if self.direct_fit:
+            if dm.grid is None:
+                raise ValueError("direct_fit: expected a survey with an MBES grid, found none")
+            ok = self.region & np.isfinite(dm.grid.heights)
+            xx, yy = np.meshgrid(dm.grid.x, dm.grid.y)
+            cells = np.stack([xx[ok], yy[ok], dm.grid.heights[ok]], 1).astype(np.float32)
+            if cells.shape[0] == 0:
+                raise ValueError(
+                    "direct_fit: the MBES grid has no finite cell in the survey region"
+                )
+            self.fit_cells = torch.from_numpy(cells)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        opt = self.optimizer_factory(params=self.parameters())
+        if self.scheduler_factory is None:
+            return {"optimizer": opt}
+        sched = self.scheduler_factory(optimizer=opt)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+    def configure_callbacks(self) -> list[Callback]:
+        return [SirenMapImages()] if self.log_images else []
+
+    # ------------------------------------------------------------------ steps
+    def sidescan_geometry(
+        self, batch: dict[str, torch.Tensor]
+    ) -> tuple[ArcGeometry, torch.Tensor, dict[str, torch.Tensor]]:
+        """:func:`arc_geometry` of the bins the sensor can use, and their targets."""
+        geo, stats = arc_geometry(
+            self.siren,
+            batch,
+            self.sensor.bin_mask(batch),
+            self.theta_limits,
+            self.finder,
+            self.theta_cache if self.theta_cache.numel() else None,
+        )
+        return geo, batch[self.sensor.target_key][geo.ping, geo.side, geo.bin], stats
+
+    def model_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Loss terms and statistics of one batch (module docstring)."""
+        alt = batch["altimeter"]
+        loss_height = height_loss(self.siren.height(alt[:, :2]), alt[:, 2])
+        if self.direct_fit:
+            pick = torch.randint(
+                self.fit_cells.shape[0], (self.direct_fit_points,), device=self.fit_cells.device
+            )
+            cells = self.fit_cells[pick]
+            loss = height_loss(self.siren.height(cells[:, :2]), cells[:, 2])
+            return {"loss": loss, "loss_direct": loss.detach(), "loss_height": loss_height.detach()}
+        if self.sensor is None:
+            return {"loss": loss_height, "loss_height": loss_height.detach()}
+        geo, target, stats = self.sidescan_geometry(batch)
+        loss_sensor, sensor_logs = self.sensor.loss(geo, target)
+        loss = total_loss(loss_sensor, loss_height, self.w_height)
+        out = {
+            "loss": loss,
+            "loss_sensor": loss_sensor.detach(),
+            "loss_height": loss_height.detach(),
+            **stats,
+        }
+        out.update({f"sensor/{k}": torch.as_tensor(v).detach() for k, v in sensor_logs.items()})
+        return out
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        out = self.model_step(batch)
+        n = int(batch["position"].shape[0])
+        for key, value in out.items():
+            self.log(
+                f"train/{key}",
+                value.detach() if key == "loss" else value,
+                on_step=key == "loss",
+                on_epoch=True,
+                prog_bar=key == "loss",
+                batch_size=n,
+            )
+        return out["loss"]
+
+    # -------------------------------------------------------------- evaluation
+    def evaluate_map(self) -> tuple[BathyGrid, dict[str, float]]:
+        """The SIREN on the evaluation grid and, with an MBES grid, its metrics."""
+        pred = siren_to_grid(self.siren, self.eval_like)
+        metrics = map_metrics(pred, self.true_grid, self.region) if self.true_grid else {}
+        return pred, metrics
+
+    def validation_step(self, batch: Any, batch_idx: int) -> None:
+        if self.trainer.sanity_checking or (self.current_epoch + 1) % self.eval_every_n_epochs:
+            return
+        pred, metrics = self.evaluate_map()
+        self.last_eval = {"pred": pred, "metrics": metrics, "epoch": self.current_epoch}
+        for key in ("mae", "std", "grad_cs"):
+            if key in metrics and math.isfinite(metrics[key]):
+                self.log(f"val/{key}", metrics[key], batch_size=1)
+
+    def on_fit_end(self) -> None:
+        if not self.trainer.is_global_zero:
+            return
+        pred, metrics = self.evaluate_map()
+        self.last_eval = {"pred": pred, "metrics": metrics, "epoch": self.current_epoch}
+        out_dir = self._output_dir()
+        summary = {"final/" + k: v for k, v in metrics.items() if isinstance(v, int | float)}
+        summary["epochs"] = int(self.current_epoch)
+        if self.direct_fit:
+            title = "SIREN-Direct-Fit"
+        else:
+            title = type(self.sensor).__name__ if self.sensor is not None else "heights only"
+        paths = save_map_outputs(out_dir, pred, self.true_grid, self.region, summary, title)
+        log.info("SIREN map written to %s (%s)", paths["map_tif"], metrics)
+        for logger in self.loggers:
+            logger.log_hyperparams(self._hparams_for_log(), metrics=summary)
+
+    def _output_dir(self) -> Path:
+        if self.output_dir:
+            return Path(self.output_dir)
+        if self.logger is not None and getattr(self.logger, "save_dir", None):
+            return Path(self.logger.save_dir)
+        return Path(self.trainer.default_root_dir)
+
+    def _hparams_for_log(self) -> dict[str, Any]:
+        flat: dict[str, Any] = {
+            "siren/hidden": self.siren.hidden,
+            "siren/n_layers": self.siren.n_layers,
+            "siren/omega0": self.siren.omega0,
+            "sensor": type(self.sensor).__name__ if self.sensor is not None else "none",
+            "w_height": self.w_height,
+            "direct_fit": self.direct_fit,
+        }
+        flat.update({f"finder/{k}": str(v) if v is None else v for k, v in self.finder.items()})
+        opt = self.trainer.optimizers[0] if self.trainer.optimizers else None
+        if opt is not None:
+            flat["lr"] = opt.defaults.get("lr")
+        return flat
+
+
+class SirenMapImages(Callback):
+    """Logs the last evaluated map to TensorBoard: bathymetry, gradient HSV, signed error.
+
+    Does nothing with other loggers (or none); the module's ``last_eval`` is produced by
+    its validation step every ``eval_every_n_epochs`` epochs.
+    """
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        from pytorch_lightning.loggers import TensorBoardLogger
+
+        ev = getattr(pl_module, "last_eval", None)
+        if trainer.sanity_checking or not trainer.is_global_zero or ev is None:
+            return
+        if ev.get("logged"):
+            return
+        ev["logged"] = True
+        pred: BathyGrid = ev["pred"]
+        region = pl_module.region
+        shown = np.where(region, pred.heights, np.nan) if region is not None else pred.heights
+        images = {
+            "map/bathymetry": colorize(shown),
+            "map/gradient_hsv": gradient_hsv(*map_gradient(shown, pred.cell_size)),
+        }
+        if pl_module.true_grid is not None:
+            err = error_map(pred, pl_module.true_grid, region)
+            images["map/signed_error"] = colorize(err, "RdBu_r", symmetric=True)
+        for logger in trainer.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                for tag, rgb in images.items():
+                    logger.experiment.add_image(
+                        tag, np.ascontiguousarray(rgb[::-1]), trainer.global_step, dataformats="HWC"
+                    )

@@ -1,0 +1,213 @@
+"""PingAltimeterDataModule on a tiny survey built here (a tilted plane, two crossing lines)."""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sss2bathy.data.pings import PingAltimeterDataModule, build_ping_table, latest_checkpoint
+from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
+from sss2bathy.survey import MASK_WATER_COLUMN, BathyGrid, SensorParams, SidescanLine, Survey
+
+PLANE = (-20.0, 0.05, 0.02)  # z = a + b x + c y
+ALTITUDE = 8.0
+
+
+def plane_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return PLANE[0] + PLANE[1] * x + PLANE[2] * y
+
+
+def make_tiny_survey(folder: Path, n_pings: int = 40, n_bins: int = 32) -> Path:
+    """A tilted-plane MBES grid and two lines (north-bound, east-bound) flown 8 m above it."""
+    cell = 0.5
+    xs = np.arange(0.0, 120.0 + cell, cell)
+    xx, yy = np.meshgrid(xs, xs)
+    grid = BathyGrid(plane_z(xx, yy), 0.0, 0.0, cell)
+    sensor = SensorParams(math.radians(30.0), math.radians(60.0))
+    rng = np.random.default_rng(0)
+    lines = []
+    for name, heading, start, step in (
+        ("north", 0.0, (60.0, 40.0), (0.0, 1.0)),
+        ("east", math.pi / 2, (40.0, 60.0), (1.0, 0.0)),
+    ):
+        k = np.arange(n_pings)
+        x, y = start[0] + step[0] * k, start[1] + step[1] * k
+        altitude = np.full(n_pings, ALTITUDE)
+        altitude[3] = np.nan  # a missing altimeter reading
+        position = np.stack([x, y, plane_z(x, y) + ALTITUDE], 1)
+        rotation = attitude_to_rotation(
+            np.full(n_pings, heading), np.zeros(n_pings), np.zeros(n_pings)
+        )
+        lines.append(
+            SidescanLine(
+                name=name,
+                time_s=k.astype(float),
+                position=position,
+                rotation=rotation,
+                altitude_m=altitude,
+                intensity=rng.uniform(0.5, 2.0, (n_pings, 2, n_bins)),
+                range_m=np.linspace(2.0, 30.0, n_bins),
+                sensor=sensor,
+            )
+        )
+    survey = Survey("tiny_plane", lines, grid, splits={"test": ["north", "east"], "train": []})
+    return survey.save(folder)
+
+
+@pytest.fixture(scope="module")
+def tiny_survey(tmp_path_factory) -> Path:
+    return make_tiny_survey(tmp_path_factory.mktemp("tiny") / "tiny_plane")
+
+
+def _dm(folder: Path, **kw) -> PingAltimeterDataModule:
+    cfg = {"kind": "folder", "path": str(folder)}
+    kw.setdefault("batch_pings", 16)
+    kw.setdefault("altimeter_points", 50)
+    return PingAltimeterDataModule(cfg, str(folder.parent), **kw)
+
+
+def test_batches_shapes_and_epoch_coverage(tiny_survey):
+    dm = _dm(tiny_survey, normals="gt", need_intensity=True)
+    dm.prepare_data()
+    dm.setup("fit")
+    loader = dm.train_dataloader()
+    batches = list(loader)
+    assert len(batches) == math.ceil(80 / 16)
+    b = batches[0]
+    assert b["position"].shape == (16, 3) and b["rotation"].shape == (16, 3, 3)
+    assert b["range_m"].shape == (32,)
+    for key in ("n_lat", "intensity", "mask"):
+        assert b[key].shape == (16, 2, 32)
+    assert b["mask"].dtype == torch.uint8
+    assert b["altimeter"].shape == (50, 3)
+    assert {"line", "ping", "index"} <= set(b)
+    # an epoch visits every ping exactly once
+    seen = torch.cat([bb["index"] for bb in batches]).sort().values
+    assert torch.equal(seen, torch.arange(80))
+    # the gathered rows are the table's rows
+    i = b["index"]
+    assert torch.equal(b["line"], dm.table.line[i]) and torch.equal(b["ping"], dm.table.ping[i])
+    # altimeter points lie on the plane (sonar minus altitude)
+    alt = b["altimeter"].double().numpy()
+    assert np.allclose(alt[:, 2], plane_z(alt[:, 0], alt[:, 1]), atol=1e-4)
+
+
+def test_gt_normals_match_the_plane_and_frame_ignores_the_grid(tiny_survey):
+    dm = _dm(tiny_survey, normals="gt")
+    dm.setup("fit")
+    t = dm.table
+    valid = t.mask == 0
+    assert valid.float().mean() > 0.3
+    assert torch.isnan(t.n_lat[~valid]).all() and torch.isfinite(t.n_lat[valid]).all()
+    # analytic head-plane normal of the plane for every ping and side
+    side = torch.tensor([0, 1]).view(1, 2).expand(t.n_pings, 2)
+    n_lat, _ = head_plane_normal_from_gradient(
+        torch.full((t.n_pings, 2), PLANE[1]),
+        torch.full((t.n_pings, 2), PLANE[2]),
+        t.rotation.unsqueeze(1).expand(-1, 2, -1, -1),
+        side,
+    )
+    expected = n_lat.unsqueeze(-1).expand_as(t.n_lat)
+    assert torch.allclose(t.n_lat[valid], expected[valid], atol=2e-3)
+    # frame: bounds = tracks +- max range, z from altimeter points (not the grid's 241 x 241)
+    assert dm.bounds == pytest.approx((10.0, 10.0, 109.0, 109.0), abs=1e-3)
+    zmin, zmax = dm.z_range
+    alt_z = plane_z(np.array([60.0, 60.0, 40.0, 79.0]), np.array([40.0, 79.0, 60.0, 60.0]))
+    margin = max(0.25 * (alt_z.max() - alt_z.min()), 2.0)
+    assert (zmin, zmax) == pytest.approx((alt_z.min() - margin, alt_z.max() + margin), abs=1e-3)
+    assert dm.swath_half_width_m == pytest.approx(math.sqrt(30.0**2 - 8.0**2), rel=1e-6)
+
+
+def test_sidescan_only_masks_without_normals(tiny_survey):
+    dm = _dm(tiny_survey, normals="none")
+    dm.setup("fit")
+    t = dm.table
+    assert torch.isnan(t.n_lat).all()
+    water = t.range_m < ALTITUDE
+    # every ping with an altitude: water column exactly where the slant range < altitude
+    ping_ok = torch.ones(t.n_pings, dtype=torch.bool)
+    ping_ok[[3, 43]] = False  # the pings without altimeter reading
+    m = t.mask[ping_ok]
+    assert ((m & MASK_WATER_COLUMN) > 0).equal(water.expand_as(m))
+    assert (m[:, :, ~water] == 0).all()
+    assert (t.mask[~ping_ok] != 0).all()
+
+
+def test_steps_per_epoch_and_validation(tiny_survey):
+    with pytest.raises(ValueError, match="normals"):
+        _dm(tiny_survey, normals="mbes")
+    with pytest.raises(ValueError, match="cnn_checkpoint"):
+        _dm(tiny_survey, normals="cnn")
+    dm = _dm(tiny_survey, normals="none", steps_per_epoch=7, batch_pings=32)
+    dm.setup("fit")
+    batches = list(dm.train_dataloader())
+    assert len(batches) == 7 and all(b["index"].numel() == 32 for b in batches)
+    assert len(list(dm.val_dataloader())) == 1
+
+
+def test_build_ping_table_rejects_mixed_ranges(tiny_survey):
+    survey = Survey.load(tiny_survey)
+    survey.lines[1].range_m = survey.lines[1].range_m * 1.1
+    with pytest.raises(ValueError, match="slant ranges"):
+        build_ping_table(survey, tiny_survey, ["north", "east"], normals="none")
+
+
+def test_latest_checkpoint(tmp_path):
+    with pytest.raises(ValueError, match="cnn_checkpoint"):
+        latest_checkpoint(tmp_path)
+    paths = []
+    for run in ("2024-01-01_10-00-00", "2024-01-02_10-00-00"):
+        ckpt = tmp_path / run / "checkpoints" / "last.ckpt"
+        ckpt.parent.mkdir(parents=True)
+        ckpt.write_bytes(b"x")
+        paths.append(ckpt)
+    now = time.time()
+    os.utime(paths[0], (now, now))
+    os.utime(paths[1], (now - 100, now - 100))
+    assert latest_checkpoint(tmp_path) == paths[0]
+
+
+def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
+    """normals=cnn: predictions of a (tiny, untrained) CNN on valid draped bins only."""
+    import pytorch_lightning as pl
+
+    from sss2bathy.losses.normal import NormalLoss
+    from sss2bathy.models.normal_cnn import NormalResNet
+    from sss2bathy.modules.normal_cnn import NormalCNNModule
+
+    torch.manual_seed(0)
+    module = NormalCNNModule(
+        net=NormalResNet(base_width=2, n_blocks=1),
+        loss=NormalLoss(),
+        optimizer=functools.partial(torch.optim.Adam, lr=1e-3),
+        image_every_n_epochs=0,
+    )
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, max_epochs=0)
+    trainer.strategy.connect(module)
+    ckpt = tmp_path / "runs" / "cnn" / "2024-01-01_10-00-00" / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    trainer.save_checkpoint(ckpt)
+    window = {"window_pings": 16, "window_bins": None, "overlap": 0.5}
+    dm = _dm(
+        tiny_survey,
+        normals="cnn",
+        cnn_checkpoint="latest",
+        cnn_runs_dir=str(tmp_path / "runs" / "cnn"),
+        window=window,
+    )
+    dm.setup("fit")
+    gt = _dm(tiny_survey, normals="gt")
+    gt.setup("fit")
+    t = dm.table
+    assert torch.equal(t.mask, gt.table.mask)  # the draped mask (+ the prediction's)
+    valid = t.mask == 0
+    assert torch.isfinite(t.n_lat[valid]).all() and torch.isnan(t.n_lat[~valid]).all()
+    assert t.n_lat[valid].abs().max() <= 1.0
+    assert not torch.allclose(t.n_lat[valid], gt.table.n_lat[valid])  # not the GT normals

@@ -1,0 +1,122 @@
+"""SIREN losses (eq. 7-9) and the normal sensor model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from sss2bathy.losses.siren import height_loss, normal_2d_loss, total_loss
+from sss2bathy.models.normal_sensor import NormalSensorModel
+from sss2bathy.models.sensors import ArcGeometry
+from sss2bathy.models.siren import Siren
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_height_loss_is_mean_absolute_error():
+    z = torch.tensor([1.0, -2.0, 3.0], requires_grad=True)
+    loss = height_loss(z, torch.tensor([1.5, -2.0, 2.0]))
+    assert loss.item() == pytest.approx((0.5 + 0.0 + 1.0) / 3)
+    loss.backward()
+    assert torch.allclose(z.grad, torch.tensor([-1.0, 0.0, 1.0]) / 3)
+    empty = torch.zeros(0, requires_grad=True)
+    assert height_loss(empty, torch.zeros(0)).item() == 0.0
+    with pytest.raises(ValueError, match="z_pred, z_true"):
+        height_loss(z, torch.zeros(2))
+
+
+def test_normal_2d_loss_golden_values_and_gradient():
+    # SIREN normal straight up vs a target tilted to n_lat = 0.6: |(0,1) - (0.6,0.8)|
+    n_lat = torch.tensor([0.0, 0.6], requires_grad=True)
+    n_up = torch.tensor([1.0, 0.8], requires_grad=True)
+    loss = normal_2d_loss(n_lat, n_up, torch.tensor([0.6, 0.6]))
+    assert loss.item() == pytest.approx((math.sqrt(0.36 + 0.04) + 0.0) / 2, abs=1e-6)
+    loss.backward()
+    assert torch.isfinite(n_lat.grad).all() and torch.isfinite(n_up.grad).all()
+    assert n_lat.grad[1].abs() < 1e-5  # the matching pair pulls nowhere
+    # opposite normals are 2 apart; targets outside [-1, 1] are clipped
+    assert normal_2d_loss(
+        torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([-1.0])
+    ).item() == pytest.approx(2.0)
+    assert normal_2d_loss(
+        torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([1.2])
+    ).item() == pytest.approx(0.0, abs=1e-5)
+    with pytest.raises(ValueError, match="n_lat"):
+        normal_2d_loss(n_lat, n_up[:1], n_lat)
+
+
+def test_total_loss_weights_height():
+    assert total_loss(torch.tensor(0.3), torch.tensor(0.5), 2.0).item() == pytest.approx(1.3)
+    with pytest.raises(ValueError, match="w_height"):
+        total_loss(torch.tensor(0.0), torch.tensor(0.0), -1.0)
+
+
+def _geo(n_lat: torch.Tensor) -> ArcGeometry:
+    n = n_lat.shape[0]
+    z3, z = torch.zeros(n, 3), torch.zeros(n)
+    idx = torch.zeros(n, dtype=torch.long)
+    return ArcGeometry(
+        points=z3,
+        theta=z,
+        range_m=z + 10,
+        side=idx,
+        sonar=z3,
+        rotation=torch.eye(3).expand(n, 3, 3),
+        grad=torch.zeros(n, 2),
+        n_lat=n_lat,
+        n_up=torch.sqrt(1 - n_lat**2),
+        ping=idx,
+        bin=idx,
+        line=idx,
+    )
+
+
+def test_normal_sensor_model_mask_and_loss():
+    sensor = NormalSensorModel()
+    assert sensor.target_key == "n_lat"
+    batch = {
+        "mask": torch.tensor([[[0, 1, 0]], [[0, 0, 2]]], dtype=torch.uint8),
+        "n_lat": torch.tensor([[[0.1, 0.2, float("nan")]], [[0.3, 0.4, 0.5]]]),
+    }
+    assert sensor.bin_mask(batch).tolist() == [[[True, False, False]], [[True, True, False]]]
+    pred = torch.tensor([0.0, 0.5])
+    loss, logs = sensor.loss(_geo(pred), torch.tensor([0.0, 0.3]))
+    assert loss.item() == pytest.approx(
+        normal_2d_loss(pred, torch.sqrt(1 - pred**2), torch.tensor([0.0, 0.3])).item()
+    )
+    assert logs["n_lat_mae"].item() == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="target"):
+        sensor.loss(_geo(pred), torch.zeros(3))
+
+
+def test_height_loss_alone_drives_a_siren_to_a_plane():
+    torch.manual_seed(0)
+    bounds, plane = (0.0, 0.0, 100.0, 80.0), (-18.0, 0.04, -0.03)
+
+    def z_true(xy):
+        return plane[0] + plane[1] * xy[:, 0] + plane[2] * xy[:, 1]
+
+    siren = Siren(hidden=32, n_layers=3, omega0=3.0, bounds=bounds, z_range=(-22.0, -14.0))
+    opt = torch.optim.Adam(siren.parameters(), lr=3e-3)
+    g = torch.Generator().manual_seed(1)
+    test_xy = torch.rand(2000, 2, generator=g) * torch.tensor([100.0, 80.0])
+    mae0 = (siren.height(test_xy) - z_true(test_xy)).abs().mean().item()
+    for _ in range(400):
+        xy = torch.rand(256, 2, generator=g) * torch.tensor([100.0, 80.0])
+        loss = height_loss(siren.height(xy), z_true(xy))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        z, grad = siren.height_and_gradient(test_xy)
+    mae = (z - z_true(test_xy)).abs().mean().item()
+    assert mae0 > 0.5 and mae < 0.05
+    assert torch.allclose(grad.mean(0), torch.tensor(plane[1:]), atol=5e-3)

@@ -1,0 +1,199 @@
+"""SirenModule: normals + heights recover a slope; training steps through Hydra compose."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
+from sss2bathy.losses.siren import height_loss
+from sss2bathy.models.normal_sensor import NormalSensorModel
+from sss2bathy.models.siren import Siren
+from sss2bathy.modules.siren import SirenModule, arc_geometry
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _load_tiny_survey_builder():
+    spec = importlib.util.spec_from_file_location("_pings_tests", ROOT / "tests/data/test_pings.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.make_tiny_survey
+
+
+# ------------------------------------------------------------------ pure tensors
+SLOPE = (0.1, 0.0)  # dz/dx, dz/dy of the true plane
+
+
+def _plane(xy: torch.Tensor) -> torch.Tensor:
+    return -20.0 + SLOPE[0] * xy[:, 0] + SLOPE[1] * xy[:, 1]
+
+
+def _one_line_batch(n_pings: int = 40, n_bins: int = 24) -> tuple[dict, torch.Tensor]:
+    """One north-bound line at x = 50, 8 m above the plane; targets = the plane's n_lat."""
+    y = torch.linspace(0.0, 78.0, n_pings)
+    xy = torch.stack([torch.full((n_pings,), 50.0), y], 1)
+    position = torch.cat([xy, (_plane(xy) + 8.0).unsqueeze(1)], 1)
+    zeros = torch.zeros(n_pings, dtype=torch.float64)
+    R = attitude_to_rotation(zeros, zeros, zeros).float()
+    side = torch.tensor([0, 1]).expand(n_pings, 2)
+    n_lat, _ = head_plane_normal_from_gradient(
+        torch.full((n_pings, 2), SLOPE[0]),
+        torch.full((n_pings, 2), SLOPE[1]),
+        R.unsqueeze(1).expand(-1, 2, -1, -1),
+        side,
+    )
+    batch = {
+        "position": position,
+        "rotation": R,
+        "range_m": torch.linspace(9.0, 30.0, n_bins),
+        "n_lat": n_lat.unsqueeze(-1).expand(n_pings, 2, n_bins).contiguous(),
+        "mask": torch.zeros(n_pings, 2, n_bins, dtype=torch.uint8),
+        "line": torch.zeros(n_pings, dtype=torch.long),
+        "index": torch.arange(n_pings),
+    }
+    altimeter = torch.cat([xy, _plane(xy).unsqueeze(1)], 1)
+    return batch, altimeter
+
+
+def _fit(use_normals: bool, steps: int = 150) -> torch.Tensor:
+    """Mean |dz/dx error| over the swath after fitting (heights only, or + normals)."""
+    batch, alt = _one_line_batch()
+    torch.manual_seed(1)
+    siren = Siren(hidden=32, n_layers=3, omega0=3.0, bounds=(20, -30, 80, 108), z_range=(-20, -8))
+    opt = torch.optim.Adam(siren.parameters(), lr=3e-3)
+    sensor = NormalSensorModel()
+    cache = torch.full((40, 2, 24), torch.nan)
+    for _ in range(steps):
+        loss = height_loss(siren.height(alt[:, :2]), alt[:, 2])
+        if use_normals:
+            geo, stats = arc_geometry(
+                siren, batch, sensor.bin_mask(batch), (0.0, math.radians(60.0)), {}, cache
+            )
+            loss = loss + sensor.loss(geo, batch["n_lat"][geo.ping, geo.side, geo.bin])[0]
+            assert stats["valid_fraction"] > 0.9
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    if use_normals:
+        assert torch.isfinite(cache).float().mean() > 0.9  # warm-start cache filled
+    xx, yy = torch.meshgrid(torch.linspace(30, 70, 21), torch.linspace(5, 75, 21), indexing="xy")
+    with torch.no_grad():
+        _, grad = siren.height_and_gradient(torch.stack([xx.ravel(), yy.ravel()], 1))
+    return (grad[:, 0] - SLOPE[0]).abs().mean()
+
+
+def test_normals_recover_the_cross_track_slope_that_heights_cannot():
+    err_heights = _fit(use_normals=False)
+    err_normals = _fit(use_normals=True)
+    # one line of altimeter points says nothing about the slope across the line
+    assert err_heights > 0.05
+    assert err_normals < 0.02 and err_normals < 0.25 * err_heights
+
+
+def test_arc_geometry_normals_are_the_sirens_at_the_crossings():
+    batch, _ = _one_line_batch(n_pings=4, n_bins=6)
+    siren = Siren(hidden=16, n_layers=3, omega0=3.0, bounds=(20, -30, 80, 108), z_range=(-20, -8))
+    use = NormalSensorModel().bin_mask(batch)
+    geo, _ = arc_geometry(siren, batch, use, (0.0, math.radians(60.0)), {"tol_m": 1e-4})
+    with torch.no_grad():
+        z, grad = siren.height_and_gradient(geo.points[:, :2])
+    assert torch.allclose(z, geo.points[:, 2], atol=2e-4)  # on the surface
+    assert torch.allclose(grad, geo.grad.detach())
+    assert geo.grad.requires_grad and geo.n_lat.requires_grad
+    r = (geo.points - geo.sonar).norm(dim=-1)
+    assert torch.allclose(r, geo.range_m, atol=1e-4)  # on the arc
+    with pytest.raises(ValueError, match="finder"):
+        arc_geometry(siren, batch, use, (0.0, 1.0), {"solver": "secant"})
+
+
+# ------------------------------------------------------------------ Hydra + Lightning
+def _compose(tmp: Path, experiment: str, survey: Path, extra: list[str] = ()):
+    overrides = [
+        f"experiment={experiment}",
+        "data/survey=xtf",
+        "data.survey.kind=folder",
+        f"+data.survey.path={survey}",
+        f"paths.data_dir={tmp}",
+        f"paths.output_dir={tmp / 'outputs'}",
+        "debug=fast",
+        "model.siren.hidden=16",
+        "model.siren.n_layers=3",
+        "data.batch_pings=16",
+        "data.altimeter_points=100",
+        "model.eval_cell_m=2.0",
+        f"model.output_dir={tmp / 'run'}",
+        *extra,
+    ]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("train.yaml", overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def tiny_survey(tmp_path_factory) -> Path:
+    return _load_tiny_survey_builder()(tmp_path_factory.mktemp("siren") / "tiny_plane")
+
+
+def _fit_from_config(cfg):
+    dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
+    model = hydra.utils.instantiate(cfg.model)
+    trainer = hydra.utils.instantiate(cfg.trainer)
+    trainer.fit(model, datamodule=dm)
+    return trainer, model, dm
+
+
+@pytest.mark.parametrize(
+    "experiment, extra",
+    [("siren_gt_n2d", []), ("siren_direct_fit", []), ("siren_gt_n2d", ["model.sensor=null"])],
+)
+def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extra):
+    cfg = _compose(tmp_path, experiment, tiny_survey, extra)
+    assert cfg.task_name == experiment and cfg.trainer.max_epochs == 1500
+    trainer, model, dm = _fit_from_config(cfg)
+    metrics = trainer.callback_metrics
+    assert torch.isfinite(metrics["train/loss"])
+    if extra:  # heights only: no sidescan term
+        assert "train/loss_sensor" not in metrics
+        assert metrics["train/loss"] == pytest.approx(float(metrics["train/loss_height"]))
+    elif experiment == "siren_gt_n2d":
+        assert metrics["train/valid_fraction"] > 0.5
+        assert 0 < metrics["train/finder_iters"] <= 16
+        assert torch.isfinite(model.theta_cache).sum() > 0
+    else:
+        assert torch.isfinite(metrics["train/loss_direct"])
+    # the SIREN's frame comes from the datamodule (tracks and altimeter), not the grid
+    assert model.siren.bounds == pytest.approx(dm.bounds, abs=1e-3)
+    assert model.siren.z_range == pytest.approx(dm.z_range, abs=1e-4)
+    run = tmp_path / "run"
+    final = json.loads((run / "metrics.json").read_text())
+    assert final["final/n_cells"] > 100 and np.isfinite(final["final/mae"])
+    for name in ("map.tif", "map.npz", "map.png", "gradient_hsv.png", "error.png"):
+        assert (run / name).is_file()
+
+
+def test_cnn_experiment_config(tmp_path, tiny_survey):
+    cfg = _compose(tmp_path, "siren_cnn_n2d", tiny_survey)
+    assert cfg.data.normals == "cnn" and cfg.data.cnn_checkpoint == "latest"
+    assert cfg.data.cnn_runs_dir == os.path.join(str(tmp_path / "outputs"), "runs", "cnn")
+    model = hydra.utils.instantiate(cfg.model)
+    assert isinstance(model, SirenModule) and model.finder["solver"] == "newton"
+    dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
+    with pytest.raises(ValueError, match="cnn_checkpoint"):
+        dm.setup("fit")  # no CNN trained under this output dir
