@@ -16,6 +16,7 @@ The two differ only in this component; everything else of the fit is shared.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -70,6 +71,10 @@ class SensorModel(nn.Module):
         (e.g. the Lambertian shadow threshold and near-range cut).
         """
         return batch["mask"] == 0
+
+    def setup_from_data(self, sensor: Any, range_m: torch.Tensor) -> None:
+        """Hook called once the data are known: ``sensor`` (:class:`~sss2bathy.survey.SensorParams`)
+        and the bins' slant ranges ``range_m (n_bins,)``. Default: nothing to set up."""
 
     def loss(self, geo: ArcGeometry, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """Loss over the ``N`` bins of ``geo`` against ``target (N,)``.

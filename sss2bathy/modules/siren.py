@@ -191,6 +191,8 @@ class SirenModule(pl.LightningModule):
             half-width from the datamodule.
         output_dir: where the final map files go (default: see the module docstring).
         log_images: add the :class:`SirenMapImages` callback.
+        sensor_lr: learning rate of the sensor model's own parameters (the Lambertian
+            beam pattern, gain and scale); ``None`` = the optimizer's.
     """
 
     def __init__(
@@ -208,6 +210,7 @@ class SirenModule(pl.LightningModule):
         region_radius_m: float | None = None,
         output_dir: str | None = None,
         log_images: bool = True,
+        sensor_lr: float | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["siren", "sensor"], logger=False)
@@ -232,6 +235,11 @@ class SirenModule(pl.LightningModule):
         self.region_radius_m = region_radius_m
         self.output_dir = output_dir
         self.log_images = bool(log_images)
+        if sensor_lr is not None and not sensor_lr > 0:
+            raise ValueError(
+                f"sensor_lr: expected a positive learning rate or None, found {sensor_lr}"
+            )
+        self.sensor_lr = None if sensor_lr is None else float(sensor_lr)
         self.register_buffer("framed", torch.tensor(False))
         self.register_buffer("theta_cache", torch.zeros(0, 2, 0), persistent=False)
         self.register_buffer("fit_cells", torch.zeros(0, 3), persistent=False)
@@ -253,6 +261,8 @@ class SirenModule(pl.LightningModule):
             self.siren.set_frame(dm.bounds, dm.z_range)
             self.framed.fill_(True)
         self.theta_limits = dm.sensor.beam_limits_rad
+        if self.sensor is not None:
+            self.sensor.setup_from_data(dm.sensor, dm.table.range_m)
         self.theta_cache = torch.full((dm.n_pings, 2, dm.table.n_bins), torch.nan)
         self.true_grid = dm.grid
         self.eval_like = (
@@ -273,7 +283,14 @@ class SirenModule(pl.LightningModule):
             self.fit_cells = torch.from_numpy(cells)
 
     def configure_optimizers(self) -> dict[str, Any]:
-        opt = self.optimizer_factory(params=self.parameters())
+        groups: list[dict[str, Any]] = [{"params": list(self.siren.parameters())}]
+        sensor_params = list(self.sensor.parameters()) if self.sensor is not None else []
+        if sensor_params:
+            group: dict[str, Any] = {"params": sensor_params}
+            if self.sensor_lr is not None:
+                group["lr"] = self.sensor_lr
+            groups.append(group)
+        opt = self.optimizer_factory(params=groups)
         if self.scheduler_factory is None:
             return {"optimizer": opt}
         sched = self.scheduler_factory(optimizer=opt)

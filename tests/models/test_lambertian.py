@@ -509,7 +509,9 @@ def test_experiment_values():
         assert (cfg.data.sidescan_split, cfg.data.altimeter_split) == ("all", "all")
         base = _compose("experiment=siren_cnn_n2d")
         assert cfg.model.siren.hidden * 2 == base.model.siren.hidden
-        assert cfg.trainer.max_epochs == 1000
+        assert cfg.trainer.max_epochs == cfg.scale.siren.d2_max_epochs
+    paper = _compose("experiment=d2_siren_lambert", "scale=paper")
+    assert paper.trainer.max_epochs == 1000  # the paper's Dataset II schedule
 
 
 def test_sensor_instantiates_from_config():
