@@ -36,6 +36,7 @@ positive_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 
 
 RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("seed", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
+    ("torch_threads", positive_int, "a positive integer or null"),
     ("trainer.max_epochs", lambda v: v == -1 or positive_int(v), "a positive integer or -1"),
     ("data.batch_size", positive_int, "a positive integer"),
     ("data.batch_pings", positive_int, "a positive integer"),

@@ -1,6 +1,6 @@
 """``sss2bathy-predict``: CNN normals for whole lines (the input of SIREN-CNN-N2d).
 
-    sss2bathy-predict data/survey=synthetic_d2 ckpt_path=latest split=all
+sss2bathy-predict data/survey=synthetic_d2 ckpt_path=latest split=all
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``sss2bathy-prepare``: generate or import a survey, drape it on its MBES grid, render figures.
 
-    sss2bathy-prepare data/survey=synthetic_d1 scale=demo
-    sss2bathy-prepare data/survey=xtf data.survey.files=/path/to/xtf data.survey.mbes_grid=mbes.tif
+sss2bathy-prepare data/survey=synthetic_d1 scale=demo
+sss2bathy-prepare data/survey=xtf data.survey.files=/path/to/xtf data.survey.mbes_grid=mbes.tif
 """
 
 from __future__ import annotations

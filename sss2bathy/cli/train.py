@@ -34,6 +34,10 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
     from sss2bathy.config_validation import validate_config
 
     validate_config(cfg)
+    if cfg.get("torch_threads"):
+        import torch
+
+        torch.set_num_threads(int(cfg.torch_threads))
     pl.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data, _recursive_=False)
     model = hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial")

@@ -213,7 +213,9 @@ class SirenModule(pl.LightningModule):
         sensor_lr: float | None = None,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["siren", "sensor"], logger=False)
+        self.save_hyperparameters(
+            ignore=["siren", "sensor", "optimizer", "scheduler"], logger=False
+        )
         self.siren = siren if isinstance(siren, Siren) else siren()
         if not isinstance(self.siren, Siren):
             raise ValueError(f"siren: expected a Siren or a factory of one, found {type(siren)}")
