@@ -1,8 +1,13 @@
 """Start-up validation of composed configs: fail before any heavy work, naming the key.
 
 Each rule is ``(dotted key, predicate, expectation)``; a rule whose key is absent from the
-composed config is skipped (not every task has every group).  Stage code still validates
-its own arguments; these rules catch the common mistakes before data is generated.
+composed config (or null) is skipped (not every task has every group). Whole groups with a
+validator of their own are checked by it: a synthetic ``data.survey`` by
+:class:`~sss2bathy.sim.config.SyntheticSurveyConfig` (every key, sizes included), an xtf one
+by the importer's checks, ``data.drape`` by :class:`~sss2bathy.draping.DrapeConfig`.
+Checks that need the data (split names, window size vs the lines' pings) run in the data
+modules' ``setup`` and name the config key too. Stage code still validates its own
+arguments; these rules catch the common mistakes before data is generated.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 
 class ConfigError(ValueError):
@@ -33,6 +38,21 @@ fraction = _num(lambda v: 0 <= v < 1)
 beam_width = _num(lambda v: 0 < v < 180)
 tilt = _num(lambda v: -90 <= v <= 90)
 positive_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 0  # noqa: E731
+non_negative_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0  # noqa: E731
+boolean = lambda v: isinstance(v, bool)  # noqa: E731
+
+
+def one_of(*choices: Any) -> Callable[[Any], bool]:
+    return lambda v: v in choices
+
+
+def _enum(*choices: Any) -> tuple[Callable[[Any], bool], str]:
+    return one_of(*choices), f"one of {list(choices)}"
+
+
+def _gamma(v: Any) -> bool:
+    return _num(lambda x: 0 < x <= 1)(v)
+
 
 RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("seed", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
@@ -66,6 +86,75 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("model.sensor.shadow_threshold", non_negative, "a number >= 0"),
     ("model.sensor.q", _num(lambda v: v >= 1), "an exponent >= 1"),
     ("model.optimizer.lr", positive, "a positive learning rate"),
+    # run control (conf/train.yaml, callbacks, trainer)
+    ("deterministic", boolean, "true or false"),
+    ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
+    ("callbacks.model_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
+    ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
+    ("callbacks.nonfinite_guard.max_consecutive", positive_int, "a positive integer"),
+    ("trainer.min_epochs", non_negative_int, "an integer >= 0"),
+    ("trainer.check_val_every_n_epoch", positive_int, "a positive integer or null"),
+    ("trainer.log_every_n_steps", positive_int, "a positive integer"),
+    ("trainer.accumulate_grad_batches", positive_int, "a positive integer"),
+    ("trainer.gradient_clip_val", non_negative, "a number >= 0 or null"),
+    # data modules (conf/data)
+    ("data.flip_augment", boolean, "true or false"),
+    ("data.normals", *_enum("gt", "cnn", "none")),
+    ("data.need_intensity", boolean, "true or false"),
+    ("data.steps_per_epoch", positive_int, "a positive integer or null"),
+    ("data.z_margin", non_negative, "a fraction >= 0"),
+    ("data.z_margin_m", non_negative, "a number >= 0 (m)"),
+    ("data.window.window_pings", positive_int, "a positive integer"),
+    ("data.window.window_bins", positive_int, "a positive integer"),
+    ("data.window.overlap", fraction, "a fraction in [0, 1)"),
+    # the normal CNN (conf/model/normal_cnn.yaml, conf/loss)
+    ("model.net.in_channels", positive_int, "a positive integer"),
+    ("model.net.base_width", positive_int, "a positive integer"),
+    ("model.net.n_blocks", non_negative_int, "an integer >= 0"),
+    ("model.net.outer_kernel", lambda v: positive_int(v) and v % 2 == 1, "an odd positive integer"),
+    ("model.image_every_n_epochs", non_negative_int, "an integer >= 0"),
+    ("model.n_images", non_negative_int, "an integer >= 0"),
+    ("model.compile", boolean, "true or false"),
+    ("model.loss.kind", *_enum("normal_aware", "l1", "l2", "smooth_l1")),
+    ("model.loss.base", *_enum("l1", "l2", "smooth_l1")),
+    ("model.loss.beta", positive, "a positive number"),
+    ("model.loss.tv_across_track", non_negative, "a weight >= 0"),
+    ("model.loss.tv_along_track", non_negative, "a weight >= 0"),
+    ("model.scheduler.gamma", _gamma, "a decay factor in (0, 1]"),
+    # the SIREN fits (conf/model/siren_*.yaml)
+    ("model.siren.hidden", positive_int, "a positive integer"),
+    ("model.siren.n_layers", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
+    ("model.siren.omega0", positive, "a positive number"),
+    ("model.finder.solver", *_enum("newton", "gd", "bisection")),
+    ("model.finder.max_iter", positive_int, "a positive integer or null"),
+    ("model.finder.gd_step", positive, "a positive step"),
+    ("model.finder.n_scan", positive_int, "a positive integer"),
+    ("model.finder.warm_bracket_deg", positive, "a positive angle (degrees)"),
+    ("model.finder.chunk", positive_int, "a positive integer"),
+    ("model.finder.warm_start", boolean, "true or false"),
+    ("model.direct_fit", boolean, "true or false"),
+    ("model.direct_fit_points", positive_int, "a positive integer"),
+    ("model.region_radius_m", positive, "a positive number (m) or null"),
+    ("model.sensor_lr", positive, "a positive learning rate or null"),
+    ("model.sensor.n_beam_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
+    ("model.sensor.n_gain_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
+    ("model.sensor.reflectivity", *_enum("constant", "field")),
+    ("model.sensor.tilt_deg", tilt, "a value in [-90, 90] degrees or null"),
+    ("model.sensor.beam_width_deg", beam_width, "a value in (0, 180) degrees or null"),
+    ("model.sensor.near_range_cut_m", non_negative, "a number >= 0 (m)"),
+    ("model.sensor.init_scale", positive, "a positive number"),
+    # real surveys (conf/data/survey/xtf.yaml) beyond the importer's own checks
+    ("data.survey.frequency_hz", positive, "a positive frequency (Hz) or null"),
+    ("data.survey.sound_speed_mps", positive, "a positive speed (m/s) or null"),
+    ("data.survey.mbes_z_positive", *_enum("up", "down")),
+    ("data.survey.mbes_statistic", *_enum("mean", "median")),
+    ("data.survey.mbes_crs_mismatch", *_enum("reproject", "error")),
+    ("data.survey.missing_attitude", *_enum("error", "track")),
+    ("data.survey.channel_pair", non_negative_int, "an integer >= 0"),
+    ("data.survey.max_jump_m", positive, "a positive distance (m)"),
+    ("data.survey.max_speed_mps", positive, "a positive speed (m/s)"),
+    ("data.survey.max_nav_gap_s", positive, "a positive duration (s)"),
+    ("data.survey.min_first_return_m", non_negative, "a distance >= 0 (m)"),
 ]
 
 
@@ -73,6 +162,61 @@ def _select(cfg: DictConfig, key: str) -> tuple[bool, Any]:
     sentinel = object()
     value = OmegaConf.select(cfg, key, default=sentinel, throw_on_missing=False)
     return (value is not sentinel), value
+
+
+def _group_error(err: ValueError, old: str = "", new: str = "") -> ConfigError:
+    """A group validator's ``<key>: expected ..., found ...`` as a :class:`ConfigError`
+    (the key's prefix ``old`` replaced by ``new``)."""
+    key, _, rest = str(err).partition(":")
+    key = key.strip()
+    if old and key.startswith(old):
+        key = new + key[len(old) :]
+    return ConfigError(f"config key '{key}':{rest}")
+
+
+def _plain(cfg: DictConfig, key: str) -> Any:
+    node = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
+    if isinstance(node, DictConfig | ListConfig):
+        return OmegaConf.to_container(node, resolve=True, throw_on_missing=False)
+    return node
+
+
+def _validate_survey(survey: Any, where: str) -> None:
+    """A ``data/survey`` config: synthetic (every key) or xtf; others are checked on use."""
+    if not isinstance(survey, dict):
+        return
+    if survey.get("kind") == "synthetic":
+        import warnings
+
+        from sss2bathy.sim.config import ROOT, SyntheticSurveyConfig
+
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # unknown keys: warned when generating
+                SyntheticSurveyConfig.from_mapping(survey)
+        except ValueError as err:
+            raise _group_error(err, ROOT, where) from None
+    elif survey.get("kind") == "xtf" and where == "data.survey":
+        from sss2bathy.io.xtf_survey import _validate
+
+        try:
+            _validate(survey)
+        except ValueError as err:
+            raise _group_error(err) from None
+
+
+def _validate_groups(cfg: DictConfig) -> None:
+    _validate_survey(_plain(cfg, "data.survey"), "data.survey")
+    for i, extra in enumerate(_plain(cfg, "data.test_surveys") or []):
+        _validate_survey(extra, f"data.test_surveys[{i}]")
+    drape = _plain(cfg, "data.drape")
+    if isinstance(drape, dict):
+        from sss2bathy.draping import DrapeConfig
+
+        try:
+            DrapeConfig.coerce(drape)
+        except ValueError as err:
+            raise _group_error(err, "drape.", "data.drape.") from None
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -86,8 +230,17 @@ def validate_config(cfg: DictConfig) -> None:
         if present and value is not None and not isinstance(value, str):
             raise ConfigError(f"config key '{key}': expected a split name, found {value!r}")
     present, w = _select(cfg, "data.window_bins")
-    present_b, b = _select(cfg, "data.survey.sonar.n_bins")
-    if present and present_b and isinstance(w, int) and isinstance(b, int) and w > b:
+    for bins_key in ("data.survey.sonar.n_bins", "data.survey.n_bins"):
+        present_b, b = _select(cfg, bins_key)
+        if present and present_b and isinstance(w, int) and isinstance(b, int) and w > b:
+            raise ConfigError(
+                f"config key 'data.window_bins': expected <= {bins_key} ({b}) (a window "
+                f"within the waterfall), found {w}"
+            )
+    _, lo = _select(cfg, "trainer.min_epochs")
+    _, hi = _select(cfg, "trainer.max_epochs")
+    if isinstance(lo, int) and isinstance(hi, int) and hi != -1 and lo > hi:
         raise ConfigError(
-            f"config key 'data.window_bins': expected <= data.survey.sonar.n_bins ({b}), found {w}"
+            f"config key 'trainer.min_epochs': expected <= trainer.max_epochs ({hi}), found {lo}"
         )
+    _validate_groups(cfg)

@@ -30,16 +30,52 @@ def instantiate_loggers(cfg: DictConfig | None) -> list:
     return _instantiate_group(cfg, "logger")
 
 
+def latest_resume_checkpoint(run_dir: Path) -> Path | None:
+    """The newest checkpoint to resume a run folder from, or None.
+
+    Candidates: ``checkpoints/last.ckpt`` (ModelCheckpoint's periodic save) and
+    ``hpc_ckpt_<n>.ckpt`` (what Lightning's SLURM auto-requeue writes into the trainer's
+    ``default_root_dir`` on the pre-emption signal, see ``conf/trainer/slurm.yaml``).
+    """
+    candidates = [run_dir / "checkpoints" / "last.ckpt", *run_dir.glob("hpc_ckpt_*.ckpt")]
+    found = [p for p in candidates if p.is_file()]
+    return max(found, key=lambda p: p.stat().st_mtime) if found else None
+
+
 def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path | None) -> str | None:
-    """``None`` | ``last`` (this run's ``checkpoints/last.ckpt`` if present) | a path."""
+    """The checkpoint ``trainer.fit`` resumes from (``None``: start fresh).
+
+    ``ckpt_path``:
+
+    * ``None`` / ``"null"``: start fresh;
+    * ``"last"``: this run's newest checkpoint (:func:`latest_resume_checkpoint` of
+      ``run_dir``), or a fresh start with a warning when there is none yet. Each Hydra run
+      gets a new folder, so resume an old run with its folder:
+      ``ckpt_path=last hydra.run.dir=<old run dir>`` (training continues there), or
+      with ``ckpt_path=<old run dir>`` (the new run gets its own folder);
+    * a run folder: its newest checkpoint (an error when it has none);
+    * a checkpoint file.
+    """
     if ckpt_path in (None, "", "null"):
         return None
     if ckpt_path == "last":
-        if run_dir is not None and (run_dir / "checkpoints" / "last.ckpt").is_file():
-            return str(run_dir / "checkpoints" / "last.ckpt")
-        log.warning("ckpt_path=last: no last.ckpt in %s; starting fresh", run_dir)
-        return None
+        found = latest_resume_checkpoint(run_dir) if run_dir is not None else None
+        if found is None:
+            log.warning("ckpt_path=last: no last.ckpt in %s; starting fresh", run_dir)
+            return None
+        log.info("resuming from %s", found)
+        return str(found)
     path = Path(ckpt_path)
+    if path.is_dir():
+        found = latest_resume_checkpoint(path)
+        if found is None:
+            raise FileNotFoundError(
+                f"ckpt_path: expected a run folder with checkpoints/last.ckpt, found none in {path}"
+            )
+        log.info("resuming from %s", found)
+        return str(found)
     if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path: expected an existing checkpoint file, found {path}")
+        raise FileNotFoundError(
+            f"ckpt_path: expected 'last', a run folder or a checkpoint file, found {path}"
+        )
     return str(path)

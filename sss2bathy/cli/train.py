@@ -38,21 +38,33 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
         import torch
 
         torch.set_num_threads(int(cfg.torch_threads))
+    # seeds torch, numpy, Python and (via PL_SEED_WORKERS) data-loader workers; the data
+    # modules draw batches from their own generators seeded by data.seed (= seed)
     pl.seed_everything(cfg.seed, workers=True)
+    # deterministic=true: torch.use_deterministic_algorithms(True, warn_only=True) through
+    # Lightning (which also sets cuDNN and cuBLAS up for it)
+    determinism = {"deterministic": "warn"} if cfg.get("deterministic") else {}
     datamodule = hydra.utils.instantiate(cfg.data, _recursive_=False)
     model = hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial")
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
     loggers = instantiate_loggers(cfg.get("logger"))
     trainer = hydra.utils.instantiate(
-        cfg.trainer, callbacks=callbacks, logger=loggers or False, _convert_="partial"
+        cfg.trainer,
+        callbacks=callbacks,
+        logger=loggers or False,
+        _convert_="partial",
+        **determinism,
     )
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
     metrics: dict[str, Any] = {}
     if cfg.get("train", True):
-        trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path)
+        # checkpoints hold tensors and plain values only: no pickled code runs on resume
+        trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         metrics.update(trainer.callback_metrics)
     if cfg.get("test", True) and is_overridden("test_step", model):
-        trainer.test(model=model, datamodule=datamodule, ckpt_path=None)
+        # after a fit: the weights it ended with; without one (train=false): the checkpoint's
+        test_ckpt = None if cfg.get("train", True) else ckpt_path
+        trainer.test(model=model, datamodule=datamodule, ckpt_path=test_ckpt, weights_only=True)
         metrics.update(trainer.callback_metrics)
     final = getattr(model, "final_metrics", None)
     if isinstance(final, dict):

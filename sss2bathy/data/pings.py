@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader, Dataset, RandomSampler
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from sss2bathy.data.sources import load_survey, survey_folder
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
@@ -221,7 +221,7 @@ def build_ping_table(
 
 
 class _Indices(Dataset):
-    """Ping indices ``0 .. n-1``; the collate gathers the batch from the table."""
+    """Indices ``0 .. n-1`` (the validation loader's one dummy item)."""
 
     def __init__(self, n: int) -> None:
         self.n = n
@@ -231,6 +231,95 @@ class _Indices(Dataset):
 
     def __getitem__(self, i: int) -> int:
         return i
+
+
+def derived_seed(*keys: int) -> int:
+    """A 63-bit seed mixed from integers (``numpy.random.SeedSequence``): distinct keys give
+    unrelated streams, e.g. ``(seed, epoch)``."""
+    return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1, np.uint64)[0] >> 1)
+
+
+class PingBatchSampler(Sampler[tuple[int, int]]):
+    """Keys ``(epoch, k)`` of the ``n_batches`` batches of an epoch, ``k`` in order.
+
+    Everything random about a batch derives from its key and the seed (:class:`PingBatches`),
+    so a run is reproducible and a resumed run (``ResumableDataLoader``) sees the batches
+    the uninterrupted run saw. The epoch is set by Lightning (``set_epoch``) and otherwise
+    advances at every iteration.
+    """
+
+    def __init__(self, n_batches: int) -> None:
+        if n_batches < 1:
+            raise ValueError(f"n_batches: expected at least one batch, found {n_batches}")
+        self.n_batches = int(n_batches)
+        self.epoch = 0
+        self._skip = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def skip(self, n_items: int) -> None:
+        """Leave out the first ``n_items`` batches of the next iteration (a resumed epoch)."""
+        self._skip = int(n_items)
+
+    def __len__(self) -> int:
+        return self.n_batches
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        epoch, start = self.epoch, self._skip
+        self.epoch, self._skip = epoch + 1, 0
+        return iter([(epoch, k) for k in range(start, self.n_batches)])
+
+
+class PingBatches(Dataset):
+    """Batch ``(epoch, k)``: pings ``k * batch_pings ..`` of the epoch's order, plus random
+    altimeter points.
+
+    The order is a permutation of all pings drawn from ``(seed, epoch)`` (several chained
+    permutations when ``n_batches * batch_pings`` exceeds the pings: without replacement
+    within each); the altimeter points are drawn with replacement from
+    ``(seed, epoch, k)``.
+    """
+
+    def __init__(
+        self,
+        table: PingTable,
+        altimeter: torch.Tensor,
+        batch_pings: int,
+        altimeter_points: int,
+        n_batches: int,
+        seed: int,
+        whole_epochs: bool,
+    ) -> None:
+        self.table, self.altimeter = table, altimeter
+        self.batch_pings, self.altimeter_points = batch_pings, altimeter_points
+        self.n_batches, self.seed, self.whole_epochs = n_batches, seed, whole_epochs
+        self._order: tuple[int, torch.Tensor] | None = None
+
+    def __len__(self) -> int:
+        return self.n_batches
+
+    def order(self, epoch: int) -> torch.Tensor:
+        """The epoch's ping order (long, on the table's device)."""
+        if self._order is None or self._order[0] != epoch:
+            n = self.table.n_pings
+            total = n if self.whole_epochs else self.n_batches * self.batch_pings
+            gen = torch.Generator().manual_seed(derived_seed(self.seed, epoch))
+            perms = [torch.randperm(n, generator=gen) for _ in range(math.ceil(total / n))]
+            order = torch.cat(perms)[:total].to(self.table.position.device)
+            self._order = (epoch, order)
+        return self._order[1]
+
+    def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
+        epoch, k = (int(v) for v in key)
+        if not 0 <= k < self.n_batches:
+            raise IndexError(f"key: expected a batch index in [0, {self.n_batches}), found {k}")
+        index = self.order(epoch)[k * self.batch_pings : (k + 1) * self.batch_pings]
+        batch = self.table.gather(index)
+        gen = torch.Generator().manual_seed(derived_seed(self.seed, 1, epoch, k))
+        pick = torch.randint(self.altimeter.shape[0], (self.altimeter_points,), generator=gen)
+        batch["altimeter"] = self.altimeter[pick.to(self.altimeter.device)]
+        return batch
 
 
 class PingAltimeterDataModule(pl.LightningDataModule):
@@ -332,6 +421,21 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             return
         survey, folder = load_survey(self.survey_cfg, self.data_dir)
         self.survey_dir = folder
+        for key, split in (
+            ("data.sidescan_split", self.sidescan_split),
+            ("data.altimeter_split", self.altimeter_split),
+        ):
+            names = ["all", *sorted(survey.splits)]
+            if split not in names:
+                raise ValueError(
+                    f"{key}: expected a split of survey '{survey.name}', one of {names}, "
+                    f"found {split!r}"
+                )
+            if not survey.split_lines(split):
+                raise ValueError(
+                    f"{key}: expected a split with lines, found split {split!r} of survey "
+                    f"'{survey.name}' empty"
+                )
         lines = survey.split_lines(self.sidescan_split)
         self.line_names = [ln.name for ln in lines]
         self.sensor = lines[0].sensor
@@ -368,7 +472,6 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             device = self.trainer.strategy.root_device
         self.table = table.to(device)
         self.altimeter = torch.from_numpy(alt.astype(np.float32)).to(device)
-        self._alt_generator = torch.Generator().manual_seed(self.seed + 1)
 
     def _bounds(self, table: PingTable) -> tuple[float, float, float, float]:
         reach = float(table.range_m.max())
@@ -387,36 +490,34 @@ class PingAltimeterDataModule(pl.LightningDataModule):
     def n_pings(self) -> int:
         return self.table.n_pings if self.table is not None else 0
 
-    def collate(self, indices: list[int]) -> dict[str, torch.Tensor]:
-        """Gather a batch of pings from the table and add random altimeter points."""
-        device = self.table.position.device
-        index = torch.as_tensor(indices, dtype=torch.long).to(device, non_blocking=True)
-        batch = self.table.gather(index)
-        pick = torch.randint(
-            self.altimeter.shape[0], (self.altimeter_points,), generator=self._alt_generator
-        )
-        batch["altimeter"] = self.altimeter[pick.to(device, non_blocking=True)]
-        return batch
-
     def train_dataloader(self) -> DataLoader:
+        """Batches of :class:`PingBatches`, resumable mid-epoch (``ResumableDataLoader``)."""
+        from sss2bathy.data.windows import ResumableDataLoader
+
         if self.table is None:
             raise RuntimeError("PingAltimeterDataModule: call setup() before train_dataloader()")
-        n = self.table.n_pings
-        steps = self.steps_per_epoch or math.ceil(n / self.batch_pings)
-        # Without replacement: num_samples > n chains whole permutations.
-        sampler = RandomSampler(
-            _Indices(n),
-            num_samples=steps * self.batch_pings if self.steps_per_epoch else None,
-            generator=torch.Generator().manual_seed(self.seed),
+        steps = self.steps_per_epoch or math.ceil(self.table.n_pings / self.batch_pings)
+        batches = PingBatches(
+            self.table,
+            self.altimeter,
+            self.batch_pings,
+            self.altimeter_points,
+            steps,
+            self.seed,
+            whole_epochs=self.steps_per_epoch is None,
         )
-        return DataLoader(
-            _Indices(n),
-            batch_size=self.batch_pings,
-            sampler=sampler,
-            collate_fn=self.collate,
+        # batch_size=None: each key is a whole batch; the loader's own generator keeps the
+        # global RNG untouched when an epoch's iterator is created
+        return ResumableDataLoader(
+            batches,
+            batch_size=None,
+            sampler=PingBatchSampler(steps),
             num_workers=0,
+            generator=torch.Generator().manual_seed(self.seed),
         )
 
     def val_dataloader(self) -> DataLoader:
         """One dummy batch per validation: the module evaluates the whole map itself."""
-        return DataLoader(_Indices(1), batch_size=1)
+        return DataLoader(
+            _Indices(1), batch_size=1, generator=torch.Generator().manual_seed(self.seed)
+        )

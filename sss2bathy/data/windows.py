@@ -275,9 +275,14 @@ class FlipShuffleSampler(Sampler[int]):
             raise ValueError(f"n: expected at least one item, found {n}")
         self.n, self.flip, self.shuffle, self.seed = n, flip, shuffle, seed
         self.epoch = 0
+        self._skip = 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
+
+    def skip(self, n_items: int) -> None:
+        """Leave out the first ``n_items`` of the next iteration (a resumed epoch)."""
+        self._skip = int(n_items)
 
     def __len__(self) -> int:
         return self.n
@@ -287,7 +292,48 @@ class FlipShuffleSampler(Sampler[int]):
         self.epoch += 1
         order = rng.permutation(self.n) if self.shuffle else np.arange(self.n)
         flips = rng.random(self.n) < 0.5 if self.flip else np.zeros(self.n, bool)
-        return iter((order + self.n * flips[order]).tolist())
+        start, self._skip = self._skip, 0
+        return iter((order + self.n * flips[order])[start:].tolist())
+
+
+class ResumableDataLoader(DataLoader):
+    """A ``DataLoader`` whose position Lightning checkpoints, for exact mid-epoch resumes.
+
+    Its sampler draws each epoch's order from ``(seed, epoch)`` (``set_epoch``, which Lightning
+    calls before every epoch) and has ``skip(n_items)`` (leave out the first items of the next
+    iteration), as :class:`FlipShuffleSampler` and
+    :class:`~sss2bathy.data.pings.PingBatchSampler`. :meth:`state_dict` holds the epoch and
+    the number of batches of it served so far (counted as they leave the loader, so worker
+    prefetching does not matter); after :meth:`load_state_dict`, iterating that epoch again
+    serves only the remaining batches. Lightning saves and restores the state with the fit
+    loop (``loops.fit_loop.state_dict.combined_loader`` in the checkpoint): a run resumed from
+    a mid-epoch checkpoint sees the batches the uninterrupted run would have seen.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._epoch = -1
+        self._served = 0
+        self._resume: tuple[int, int] | None = None
+
+    def state_dict(self) -> dict[str, int]:
+        return {"epoch": self._epoch, "batches": self._served}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self._resume = (int(state["epoch"]), int(state["batches"]))
+
+    def __iter__(self) -> Iterator[Any]:
+        # a generator: runs at the first next(), after Lightning's set_epoch
+        epoch = int(getattr(self.sampler, "epoch", -1))
+        skip = 0
+        if self._resume is not None and self._resume[0] == epoch and hasattr(self.sampler, "skip"):
+            skip = self._resume[1]
+            self.sampler.skip(skip * (self.batch_size or 1))
+        self._resume = None
+        self._epoch, self._served = epoch, skip
+        for batch in super().__iter__():
+            self._served += 1
+            yield batch
 
 
 # -------------------------------------------------------------------------- datamodule
@@ -481,7 +527,10 @@ class SidescanWindowDataModule(pl.LightningDataModule):
 
     # ----------------------------------------------------------------- loaders
     def _loader(self, ds: Dataset, sampler: Sampler | None = None) -> DataLoader:
-        return DataLoader(
+        # training: resumable mid-epoch. The loader's own generator seeds the workers, so
+        # creating an iterator never draws from the global RNG (a resumed run stays in step)
+        cls = DataLoader if sampler is None else ResumableDataLoader
+        return cls(
             ds,
             batch_size=self.batch_size,
             sampler=sampler,
@@ -489,6 +538,7 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             num_workers=self.num_workers,
             pin_memory=self.pin_memory,
             persistent_workers=self.num_workers > 0,
+            generator=torch.Generator().manual_seed(self.seed),
         )
 
     def _require(self, ds: Any, stage: str) -> Any:

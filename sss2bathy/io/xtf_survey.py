@@ -27,8 +27,13 @@ import yaml
 
 from sss2bathy.io.grids import read_grid, shift_grid
 from sss2bathy.io.xtf import SENSOR_KEYS, read_xtf
-from sss2bathy.survey import BathyGrid, Survey
-from sss2bathy.utils.atomic import file_sha256, stable_hash
+from sss2bathy.survey import BathyGrid, Survey, SurveyFormatError
+from sss2bathy.utils.atomic import (
+    file_sha256,
+    folder_digest_problems,
+    stable_hash,
+    write_folder_digest,
+)
 
 log = logging.getLogger(__name__)
 
@@ -168,6 +173,7 @@ def _replace_folder(survey: Survey, folder: Path) -> None:
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
     try:
         survey.save(tmp)
+        write_folder_digest(tmp)
         old = None
         if folder.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=folder.parent))
@@ -224,8 +230,23 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
         }
     )
     if not force and _cached_hash(folder) == source_hash:
-        log.info("survey '%s': reusing %s (inputs unchanged)", merged["name"], folder)
-        return folder
+        problems = folder_digest_problems(folder)
+        if problems is None:  # imported before digests: readable -> record its digest
+            try:
+                Survey.load(folder)
+                write_folder_digest(folder)
+                problems = []
+            except SurveyFormatError as err:
+                problems = [str(err)]
+        if not problems:
+            log.info("survey '%s': reusing %s (inputs unchanged)", merged["name"], folder)
+            return folder
+        log.warning(
+            "survey '%s': cached folder %s is corrupt (%s); importing again",
+            merged["name"],
+            folder,
+            "; ".join(problems[:3]),
+        )
 
     read_kwargs = {
         "channel_pair": int(merged["channel_pair"]),

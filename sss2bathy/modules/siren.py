@@ -284,6 +284,25 @@ class SirenModule(pl.LightningModule):
                 )
             self.fit_cells = torch.from_numpy(cells)
 
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # the warm-start angles steer the intersection finder, so a resumed fit needs them
+        # to continue exactly (kept out of the state dict: they are sized by the survey)
+        if self.theta_cache.numel():
+            checkpoint["theta_cache"] = self.theta_cache.detach().cpu()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        cache = checkpoint.get("theta_cache")
+        if cache is None or not self.theta_cache.numel():
+            return  # not set up (a plain load of the weights) or an older checkpoint
+        if tuple(cache.shape) != tuple(self.theta_cache.shape):
+            log.warning(
+                "checkpoint warm-start cache %s does not match this survey's %s; solving cold",
+                tuple(cache.shape),
+                tuple(self.theta_cache.shape),
+            )
+            return
+        self.theta_cache.copy_(cache)
+
     def configure_optimizers(self) -> dict[str, Any]:
         groups: list[dict[str, Any]] = [{"params": list(self.siren.parameters())}]
         sensor_params = list(self.sensor.parameters()) if self.sensor is not None else []

@@ -1,9 +1,11 @@
 """Cached generation of a synthetic survey folder (``data/<name>/``).
 
 The folder is reused when its manifest carries the same config hash (the resolved
-config plus the generator version) and its files are all there; otherwise the survey is
-generated into a temporary folder beside it and renamed into place, so a half-written
-survey never exists under the final name. A lock file serialises concurrent preparers.
+config plus the generator version) and its files are all there and match the folder's
+digest (``files.sha256.json``: size and SHA-256 of every file); otherwise the survey is
+generated, with a warning when a stale or corrupt folder is replaced, into a temporary
+folder beside it and renamed into place, so a half-written survey never exists under the
+final name. A lock file serialises concurrent preparers.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import yaml
 
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.survey import BathyGrid
+from sss2bathy.utils.atomic import folder_digest_problems, write_folder_digest
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +77,34 @@ def cached_hash(folder: Path) -> str | None:
     return (data.get("metadata") or {}).get("config_hash")
 
 
+def cache_problem(folder: Path, key: str) -> str | None:
+    """Why ``folder`` cannot serve as the survey of config hash ``key`` (``None``: it can).
+
+    The folder must be complete with that hash in its manifest, and every file must match
+    the folder's digest (size and SHA-256, :func:`~sss2bathy.utils.atomic.
+    folder_digest_problems`). A folder from before digests is checked by loading it, and
+    gets its digest then.
+    """
+    cached = cached_hash(folder)
+    if cached is None:
+        return "missing or incomplete"
+    if cached != key:
+        return f"stale (config hash {cached}, expected {key})"
+    problems = folder_digest_problems(folder)
+    if problems is None:
+        from sss2bathy.survey import Survey, SurveyFormatError
+
+        try:
+            Survey.load(folder)
+        except SurveyFormatError as err:
+            return f"unreadable ({err})"
+        write_folder_digest(folder)
+        return None
+    if problems:
+        return f"corrupt ({'; '.join(problems[:3])}{'; ...' if len(problems) > 3 else ''})"
+    return None
+
+
 def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = False) -> Path:
     """Make sure ``data_dir/<cfg.name>/`` holds the survey ``cfg`` describes; return it.
 
@@ -90,9 +121,12 @@ def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = Fals
     folder = data_dir / config.name
     key = config.hash()
     with _lock(data_dir / f".{config.name}.lock"):
-        if not force and cached_hash(folder) == key:
+        problem = None if force else cache_problem(folder, key)
+        if not force and problem is None:
             log.info("survey %s: cache hit (%s)", folder, key)
             return folder
+        if problem is not None and folder.exists():
+            log.warning("survey %s: cached folder is %s; regenerating", folder, problem)
         from sss2bathy.sim.generate import generate_survey
 
         log.info("survey %s: generating (config hash %s)", folder, key)
@@ -107,6 +141,7 @@ def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = Fals
                 terrain.materials.astype("float32"), 0.0, 0.0, terrain.cell_m, crs
             ).save_geotiff(tmp / "truth" / "materials.tif")
             survey.save(tmp)
+            write_folder_digest(tmp)
             old = None
             if folder.exists():
                 old = Path(tempfile.mkdtemp(prefix=f".{config.name}.old-", dir=data_dir))

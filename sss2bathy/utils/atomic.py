@@ -50,3 +50,50 @@ def file_sha256(path: str | Path, length: int = 16) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()[:length]
+
+
+FOLDER_DIGEST = "files.sha256.json"
+
+
+def write_folder_digest(folder: str | Path, name: str = FOLDER_DIGEST) -> dict[str, list]:
+    """Write ``folder/name``: ``{relative path: [size, sha256]}`` of every file below
+    ``folder`` (the digest itself and temporary ``.``-files excepted), atomically.
+
+    Cache folders (surveys) carry it so :func:`folder_digest_problems` can tell a complete,
+    intact folder from a truncated or altered one before anything loads it.
+    """
+    folder = Path(folder)
+    digest = {
+        str(p.relative_to(folder)): [p.stat().st_size, file_sha256(p, length=64)]
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != name and not p.name.startswith(".")
+    }
+    atomic_write_text(folder / name, json.dumps(digest, indent=1, sort_keys=True))
+    return digest
+
+
+def folder_digest_problems(folder: str | Path, name: str = FOLDER_DIGEST) -> list[str] | None:
+    """What differs from the folder's digest: ``None`` without a (readable) digest, ``[]``
+    when every listed file is there with its size and SHA-256, else one line per problem
+    (missing file, size, content hash)."""
+    folder = Path(folder)
+    try:
+        digest = json.loads((folder / name).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(digest, dict):
+        return None
+    problems = []
+    for rel, entry in sorted(digest.items()):
+        if not (isinstance(entry, list) and len(entry) == 2):
+            problems.append(f"{rel}: malformed digest entry {entry!r}")
+            continue
+        size, sha = entry
+        path = folder / rel
+        if not path.is_file():
+            problems.append(f"{rel}: missing")
+        elif path.stat().st_size != size:
+            problems.append(f"{rel}: {path.stat().st_size} bytes, expected {size}")
+        elif file_sha256(path, length=64) != sha:
+            problems.append(f"{rel}: content hash differs")
+    return problems

@@ -1,8 +1,10 @@
 """Every config composes, every experiment resolves, and validation names the bad key."""
 
+import copy
 from pathlib import Path
 
 import pytest
+import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -80,4 +82,142 @@ def test_validation_names_key_and_value(override, key):
 def test_window_larger_than_waterfall_rejected():
     cfg = _compose(overrides=["experiment=cnn", "scale=tiny", "data.window_bins=4096"])
     with pytest.raises(ConfigError, match="data.window_bins"):
+        validate_config(cfg)
+
+
+# one composed config per experiment; each case sets one bad value (yaml-parsed) on a copy
+_COMPOSED: dict[tuple[str, ...], object] = {}
+
+
+def _composed(*overrides: str):
+    if overrides not in _COMPOSED:
+        _COMPOSED[overrides] = _compose(overrides=["scale=tiny", *overrides])
+    return _COMPOSED[overrides]
+
+
+XTF = ("experiment=cnn", "data/survey=xtf", "data.survey.files=/none", "data.test_surveys=null")
+
+BAD_VALUES = [
+    # run control
+    (("experiment=siren_gt_n2d",), "deterministic", "maybe"),
+    (("experiment=siren_gt_n2d",), "guard.max_consecutive_nonfinite", "0"),
+    (("experiment=siren_gt_n2d",), "callbacks.model_checkpoint.every_n_epochs", "-1"),
+    (("experiment=siren_gt_n2d",), "callbacks.step_checkpoint.every_n_train_steps", "-5"),
+    (("experiment=siren_gt_n2d",), "callbacks.nonfinite_guard.max_consecutive", "0"),
+    (("experiment=siren_gt_n2d",), "trainer.min_epochs", "-1"),
+    (("experiment=siren_gt_n2d",), "trainer.check_val_every_n_epoch", "0"),
+    (("experiment=siren_gt_n2d",), "trainer.log_every_n_steps", "0"),
+    (("experiment=siren_gt_n2d",), "trainer.accumulate_grad_batches", "0"),
+    (("experiment=siren_gt_n2d",), "trainer.gradient_clip_val", "-1.5"),
+    # data modules
+    (("experiment=siren_gt_n2d",), "data.normals", "mbes"),
+    (("experiment=siren_gt_n2d",), "data.need_intensity", "3"),
+    (("experiment=siren_gt_n2d",), "data.steps_per_epoch", "0"),
+    (("experiment=siren_gt_n2d",), "data.z_margin", "-0.5"),
+    (("experiment=siren_gt_n2d",), "data.z_margin_m", "-1.0"),
+    (("experiment=siren_gt_n2d",), "data.window.window_pings", "0"),
+    (("experiment=siren_gt_n2d",), "data.window.window_bins", "-8"),
+    (("experiment=siren_gt_n2d",), "data.window.overlap", "1.5"),
+    (("experiment=cnn",), "data.flip_augment", "1"),
+    (("experiment=cnn",), "data.window_pings", "0"),
+    (("experiment=cnn",), "data.overlap", "1.0"),
+    (("experiment=cnn",), "data.min_valid_fraction", "1.5"),
+    (("experiment=cnn",), "data.val_fraction", "0.0x"),
+    (("experiment=cnn",), "data.num_workers", "-1"),
+    (("experiment=cnn",), "data.batch_size", "0"),
+    (("experiment=cnn",), "data.drape.rays_per_bin", "0"),
+    (("experiment=cnn",), "data.drape.engine", "optix"),
+    # the synthetic surveys (all keys: SyntheticSurveyConfig), test surveys included
+    (("experiment=siren_gt_n2d",), "data.survey.terrain.mean_depth_m", "-3.0"),
+    (("experiment=siren_gt_n2d",), "data.survey.plan.n_train", "-1"),
+    (("experiment=siren_gt_n2d",), "data.survey.sonar.min_range_m", "-1.0"),
+    (("experiment=siren_gt_n2d",), "data.survey.sonar.max_range_m", "0"),
+    (("experiment=siren_gt_n2d",), "data.survey.sonar.frequency_khz", "-850.0"),
+    (("experiment=siren_gt_n2d",), "data.survey.plan.speed_mps", "0"),
+    (("experiment=siren_gt_n2d",), "data.survey.seed", "-2"),
+    (("experiment=cnn",), "data.test_surveys[0].sonar.n_bins", "0"),
+    # a real (xtf) survey
+    (XTF, "data.survey.n_bins", "1"),
+    (XTF, "data.survey.frequency_hz", "-400000.0"),
+    (XTF, "data.survey.sound_speed_mps", "0"),
+    (XTF, "data.survey.mbes_z_positive", "sideways"),
+    (XTF, "data.survey.mbes_statistic", "mode"),
+    (XTF, "data.survey.mbes_crs_mismatch", "ignore"),
+    (XTF, "data.survey.missing_attitude", "zero"),
+    (XTF, "data.survey.channel_pair", "-1"),
+    (XTF, "data.survey.max_jump_m", "0"),
+    (XTF, "data.survey.max_speed_mps", "0"),
+    (XTF, "data.survey.max_nav_gap_s", "-1.0"),
+    (XTF, "data.survey.min_first_return_m", "-0.5"),
+    # the normal CNN and its loss
+    (("experiment=cnn",), "model.net.in_channels", "0"),
+    (("experiment=cnn",), "model.net.base_width", "0"),
+    (("experiment=cnn",), "model.net.n_blocks", "-1"),
+    (("experiment=cnn",), "model.net.outer_kernel", "4"),
+    (("experiment=cnn",), "model.image_every_n_epochs", "-1"),
+    (("experiment=cnn",), "model.n_images", "-2"),
+    (("experiment=cnn",), "model.compile", "yes please"),
+    (("experiment=cnn",), "model.loss.kind", "l3"),
+    (("experiment=cnn",), "model.loss.base", "huber"),
+    (("experiment=cnn",), "model.loss.beta", "0"),
+    (("experiment=cnn",), "model.loss.tv_across_track", "-0.001"),
+    (("experiment=cnn",), "model.loss.tv_along_track", "-0.001"),
+    (("experiment=cnn",), "model.optimizer.lr", "0"),
+    # the SIREN fits
+    (("experiment=siren_gt_n2d",), "model.siren.hidden", "0"),
+    (("experiment=siren_gt_n2d",), "model.siren.n_layers", "1"),
+    (("experiment=siren_gt_n2d",), "model.siren.omega0", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.solver", "secant"),
+    (("experiment=siren_gt_n2d",), "model.finder.max_iter", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.tol_m", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.gd_step", "-0.01"),
+    (("experiment=siren_gt_n2d",), "model.finder.n_scan", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.warm_bracket_deg", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.chunk", "0"),
+    (("experiment=siren_gt_n2d",), "model.finder.warm_start", "2"),
+    (("experiment=siren_gt_n2d",), "model.eval_cell_m", "0"),
+    (("experiment=siren_gt_n2d",), "model.eval_every_n_epochs", "0"),
+    (("experiment=siren_gt_n2d",), "model.region_radius_m", "-5.0"),
+    (("experiment=siren_gt_n2d",), "model.sensor_lr", "0"),
+    (("experiment=siren_gt_n2d",), "model.scheduler.gamma", "1.5"),
+    (("experiment=siren_direct_fit",), "model.direct_fit", "sometimes"),
+    (("experiment=siren_direct_fit",), "model.direct_fit_points", "0"),
+    (("experiment=siren_lambert",), "model.sensor.n_beam_knots", "1"),
+    (("experiment=siren_lambert",), "model.sensor.n_gain_knots", "1"),
+    (("experiment=siren_lambert",), "model.sensor.reflectivity", "map"),
+    (("experiment=siren_lambert",), "model.sensor.tilt_deg", "95.0"),
+    (("experiment=siren_lambert",), "model.sensor.beam_width_deg", "0"),
+    (("experiment=siren_lambert",), "model.sensor.near_range_cut_m", "-1.0"),
+    (("experiment=siren_lambert",), "model.sensor.init_scale", "0"),
+    (("experiment=siren_lambert",), "model.sensor.q", "0.5"),
+    (("experiment=siren_lambert",), "model.sensor.shadow_threshold", "-0.1"),
+]
+
+
+@pytest.mark.parametrize("base, key, bad", BAD_VALUES, ids=[f"{k}={v}" for _, k, v in BAD_VALUES])
+def test_every_validated_key_rejects_a_bad_value(base, key, bad):
+    cfg = copy.deepcopy(_composed(*base))
+    validate_config(cfg)  # the composed config itself is valid
+    if key.startswith("data.test_surveys[0]."):
+        OmegaConf.update(cfg.data.test_surveys[0], key.split("].", 1)[1], yaml.safe_load(bad))
+    else:
+        OmegaConf.update(cfg, key, yaml.safe_load(bad), force_add=True)
+    with pytest.raises(ConfigError) as err:
+        validate_config(cfg)
+    assert f"'{key}'" in str(err.value)
+    assert bad in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "base, overrides, key",
+    [
+        (XTF, {"data.window_bins": 64, "data.survey.n_bins": 32}, "data.window_bins"),
+        (("experiment=siren_gt_n2d",), {"trainer.min_epochs": 99}, "trainer.min_epochs"),
+    ],
+)
+def test_cross_key_limits(base, overrides, key):
+    cfg = copy.deepcopy(_composed(*base))
+    for k, v in overrides.items():
+        OmegaConf.update(cfg, k, v)
+    with pytest.raises(ConfigError, match=key):
         validate_config(cfg)

@@ -1,0 +1,39 @@
+"""Values that only the data can check are rejected in the data modules' set-up, naming
+the config key; everything else fails in train() before any data is touched."""
+
+from __future__ import annotations
+
+import hydra
+import pytest
+from conftest import compose_run, siren_overrides
+
+import sss2bathy.data.pings as pings
+from sss2bathy.cli.train import train
+from sss2bathy.config_validation import ConfigError
+
+
+@pytest.mark.parametrize(
+    "override, key, found",
+    [
+        ("data.sidescan_split=nope", "data.sidescan_split", "'nope'"),
+        ("data.altimeter_split=survey", "data.altimeter_split", "'survey'"),
+        ("data.altimeter_split=train", "data.altimeter_split", "'train'"),  # no lines
+    ],
+)
+def test_split_names_are_checked_against_the_survey(tmp_path, plane_survey, override, key, found):
+    cfg = compose_run(siren_overrides(plane_survey, tmp_path) + [override], tmp_path / "r")
+    dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
+    with pytest.raises(ValueError) as err:
+        dm.setup("fit")
+    assert str(err.value).startswith(f"{key}: expected") and found in str(err.value)
+
+
+def test_bad_config_fails_before_any_data_is_loaded(tmp_path, plane_survey, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("data loaded before the config was validated")
+
+    monkeypatch.setattr(pings, "survey_folder", refuse)
+    monkeypatch.setattr(pings, "load_survey", refuse)
+    cfg = compose_run(siren_overrides(plane_survey, tmp_path) + ["model.w_height=-1"], tmp_path)
+    with pytest.raises(ConfigError, match=r"'model.w_height'.*-1"):
+        train(cfg, tmp_path / "r")
