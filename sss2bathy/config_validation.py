@@ -89,7 +89,7 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     # run control (conf/train.yaml, callbacks, trainer)
     ("deterministic", boolean, "true or false"),
     ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
-    ("callbacks.model_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
+    ("callbacks.epoch_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
     ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
     ("callbacks.nonfinite_guard.max_consecutive", positive_int, "a positive integer"),
     ("trainer.min_epochs", non_negative_int, "an integer >= 0"),

@@ -101,7 +101,7 @@ BAD_VALUES = [
     # run control
     (("experiment=siren_gt_n2d",), "deterministic", "maybe"),
     (("experiment=siren_gt_n2d",), "guard.max_consecutive_nonfinite", "0"),
-    (("experiment=siren_gt_n2d",), "callbacks.model_checkpoint.every_n_epochs", "-1"),
+    (("experiment=siren_gt_n2d",), "callbacks.epoch_checkpoint.every_n_epochs", "-1"),
     (("experiment=siren_gt_n2d",), "callbacks.step_checkpoint.every_n_train_steps", "-5"),
     (("experiment=siren_gt_n2d",), "callbacks.nonfinite_guard.max_consecutive", "0"),
     (("experiment=siren_gt_n2d",), "trainer.min_epochs", "-1"),
