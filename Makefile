@@ -60,7 +60,11 @@ siren-gt-n2d: install ## Paper experiment: SIREN from draped MBES normals + alti
 	$(BIN)/sss2bathy-train experiment=siren_gt_n2d scale=$(SCALE) $(ARGS)
 
 siren-cnn-n2d: install ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
-	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,siren_cnn_n2d] $(ARGS)
+	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
+		$(BIN)/sss2bathy-train experiment=siren_cnn_n2d scale=$(SCALE) $(ARGS); \
+	else \
+		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,siren_cnn_n2d] $(ARGS); \
+	fi
 
 siren-lambert: install ## Paper experiment: Lambertian baseline, 12 test lines
 	$(BIN)/sss2bathy-train experiment=siren_lambert scale=$(SCALE) $(ARGS)
@@ -68,8 +72,12 @@ siren-lambert: install ## Paper experiment: Lambertian baseline, 12 test lines
 siren-lambert-all: install ## Paper experiment: Lambertian baseline, all lines of sidescan
 	$(BIN)/sss2bathy-train experiment=siren_lambert_all scale=$(SCALE) $(ARGS)
 
-d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2)
-	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS)
+d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
+	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
+		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
+	else \
+		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
+	fi
 
 report: install ## Gather the latest run of each experiment into outputs/report/
 	$(BIN)/sss2bathy-report $(ARGS)

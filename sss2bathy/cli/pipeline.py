@@ -62,11 +62,13 @@ def main(argv: list[str] | None = None) -> int:
     root = project_root()
     plan = [s for s in STAGES if s[0] in selected]
     times: dict[str, float] = {}
+    times_path = root / "outputs" / "report" / "stage_times.json"
     t_all = time.perf_counter()
     for i, (name, module, overrides) in enumerate(plan, 1):
         args = list(overrides)
         if module != "sss2bathy.cli.report":
-            args.append(f"scale={scale}")
+            # each run keeps its composed config in <run>/.hydra/; don't print it here
+            args += [f"scale={scale}", "extras.print_config=false"]
             if module == "sss2bathy.cli.train":
                 args += extra
         cmd = [sys.executable, "-m", module, *args]
@@ -82,9 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         if proc.returncode != 0:
             print(f"stage '{name}' failed (exit {proc.returncode}); stopping.", file=sys.stderr)
             return proc.returncode
-    times["total"] = round(time.perf_counter() - t_all, 1)
-    out = root / "outputs" / "report" / "stage_times.json"
-    atomic_write_text(out, json.dumps({"scale": scale, "seconds": times}, indent=2))
+        times["total"] = round(time.perf_counter() - t_all, 1)
+        # written after every stage, so the report (the last stage) can show them
+        atomic_write_text(times_path, json.dumps({"scale": scale, "seconds": times}, indent=2))
     print(f"\nAll {len(plan)} stages done in {times['total'] / 60:.1f} min.")
     if "report" in selected:
         print(f"Report: {Path('outputs/report/index.md')}")
