@@ -45,7 +45,7 @@ def head_plane_normal(
     """
     ny = _side_sign(side, normal_vehicle[..., 1]) * normal_vehicle[..., 1]
     nz = normal_vehicle[..., 2]
-    norm = torch.sqrt(ny * ny + nz * nz + eps)
+    norm = torch.sqrt(ny * ny + nz * nz).clamp_min(eps)
     return ny / norm, nz / norm
 
 

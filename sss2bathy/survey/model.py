@@ -195,6 +195,9 @@ class SidescanLine:
         for key in required:
             if key not in arrays:
                 raise SurveyFormatError(path, key, "an array in the archive", "missing")
+        for key, arr in arrays.items():
+            if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+                raise SurveyFormatError(path, key, "a numeric array", f"dtype {arr.dtype}")
         extras = {k[len("extra__") :]: v for k, v in arrays.items() if k.startswith("extra__")}
         try:
             return cls(

@@ -476,7 +476,7 @@ def test_model_swap_changes_only_the_sensor():
     [
         ("siren_gt_n2d", "siren_lambert",
          {"data.normals", "data.need_intensity", "callbacks.lambert_curves"}),
-        ("siren_lambert", "siren_lambert_all", {"data.sidescan_split"}),
+        ("siren_lambert", "siren_lambert_all", {"data.sidescan_split", "data.batch_pings"}),
         ("d2_siren_cnn_n2d", "d2_siren_lambert",
          {"data.normals", "data.need_intensity", "data.cnn_checkpoint",
           "callbacks.lambert_curves"}),

@@ -150,12 +150,6 @@ def test_broken_lines_raise_survey_format_error_naming_the_field(tmp_path, array
     assert err.value.field == field and "x.npz" in str(err.value)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="survey/model.py: SidescanLine.load lets numpy's float conversion ValueError of a "
-    "non-numeric array through instead of SurveyFormatError (fix: check dtypes in load)",
-)
 def test_non_numeric_arrays_raise_survey_format_error(tmp_path):
     arrays = {
         "time_s": np.array(["t0", "t1"]),
