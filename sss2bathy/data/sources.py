@@ -14,24 +14,16 @@ from pathlib import Path
 from typing import Any
 
 from sss2bathy.survey import Survey
+from sss2bathy.utils.config import plain_config
 
 KINDS = ("synthetic", "folder", "xtf")
 
 
-def _plain(cfg: Any) -> dict:
-    try:
-        from omegaconf import DictConfig, OmegaConf
-
-        if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
-    return dict(cfg)
 
 
 def survey_folder(survey_cfg: Mapping[str, Any], data_dir: str | Path, force: bool = False) -> Path:
     """Make sure the survey exists on disk and return its folder (generating/importing it)."""
-    cfg = _plain(survey_cfg)
+    cfg = plain_config(survey_cfg)
     kind = cfg.get("kind")
     if kind == "synthetic":
         from sss2bathy.sim.prepare import prepare_synthetic

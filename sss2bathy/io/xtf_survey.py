@@ -34,6 +34,7 @@ from sss2bathy.utils.atomic import (
     stable_hash,
     write_folder_digest,
 )
+from sss2bathy.utils.config import plain_config
 
 log = logging.getLogger(__name__)
 
@@ -67,19 +68,6 @@ DEFAULTS: dict[str, Any] = {
     "missing_attitude": "error",
     "min_first_return_m": 0.0,
 }
-
-
-def _plain(cfg: Any) -> dict[str, Any]:
-    try:
-        from omegaconf import DictConfig, OmegaConf
-
-        if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
-    if not isinstance(cfg, Mapping):
-        raise ValueError(f"cfg: expected a mapping (data.survey), found {type(cfg).__name__}")
-    return dict(cfg)
 
 
 def resolve_files(files: Any) -> list[Path]:
@@ -203,7 +191,7 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
     Returns:
         The survey folder (loadable with :meth:`Survey.load`).
     """
-    user = _plain(cfg)
+    user = plain_config(cfg)
     merged = {**DEFAULTS, **user}
     _validate(merged)
     files = resolve_files(merged["files"])

@@ -24,21 +24,9 @@ import yaml
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.survey import BathyGrid
 from sss2bathy.utils.atomic import folder_digest_problems, write_folder_digest
+from sss2bathy.utils.config import plain_config
 
 log = logging.getLogger(__name__)
-
-
-def _plain(cfg: Any) -> dict:
-    try:
-        from omegaconf import DictConfig, OmegaConf
-
-        if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
-    if not isinstance(cfg, Mapping):
-        raise ValueError(f"cfg: expected a mapping (data.survey), found {type(cfg).__name__}")
-    return dict(cfg)
 
 
 @contextlib.contextmanager
@@ -116,7 +104,7 @@ def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = Fals
     Returns:
         the survey folder (load it with :meth:`sss2bathy.survey.Survey.load`).
     """
-    config = SyntheticSurveyConfig.from_mapping(_plain(cfg))
+    config = SyntheticSurveyConfig.from_mapping(plain_config(cfg))
     data_dir = Path(data_dir)
     folder = data_dir / config.name
     key = config.hash()

@@ -13,14 +13,6 @@ from sss2bathy.models.sensors import ArcGeometry
 from sss2bathy.models.siren import Siren
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def test_height_loss_is_mean_absolute_error():
     z = torch.tensor([1.0, -2.0, 3.0], requires_grad=True)
     loss = height_loss(z, torch.tensor([1.5, -2.0, 2.0]))

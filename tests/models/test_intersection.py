@@ -15,14 +15,6 @@ from sss2bathy.models.siren import Siren
 BEAM = (0.0, math.radians(60.0))  # tilt 30 deg, beam width 60 deg
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _arc_vectors(sonar, R, r, side):
     sigma = 1.0 - 2.0 * side.double()
     return (sigma * r).unsqueeze(-1) * R[:, :, 1], r.unsqueeze(-1) * R[:, :, 2]

@@ -14,14 +14,6 @@ BOUNDS = (100.0, -50.0, 300.0, 150.0)
 Z_RANGE = (-25.0, -9.0)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _siren(**kw) -> Siren:
     torch.manual_seed(0)
     kw = {"hidden": 32, "n_layers": 4, "bounds": BOUNDS, "z_range": Z_RANGE, **kw}

@@ -23,14 +23,6 @@ from sss2bathy.modules.siren import SirenModule, arc_geometry
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _load_tiny_survey_builder():
     spec = importlib.util.spec_from_file_location("_pings_tests", ROOT / "tests/data/test_pings.py")
     module = importlib.util.module_from_spec(spec)

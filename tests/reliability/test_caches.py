@@ -9,7 +9,7 @@ import json
 import logging
 
 import pytest
-from conftest import ROOT
+from reliability_helpers import ROOT
 
 import sss2bathy.sim.generate as generate_module
 from sss2bathy.io.xtf import write_xtf

@@ -6,7 +6,7 @@ from __future__ import annotations
 import hydra
 import pytest
 import torch
-from conftest import cnn_overrides, compose_run, siren_overrides
+from reliability_helpers import cnn_overrides, compose_run, siren_overrides
 
 from sss2bathy.cli.train import train
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
-from conftest import cnn_overrides, compose_run, siren_overrides
+from reliability_helpers import cnn_overrides, compose_run, siren_overrides
 from torch import nn
 from torch.utils.data import DataLoader
 

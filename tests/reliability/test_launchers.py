@@ -7,10 +7,10 @@ import warnings
 
 import hydra
 import pytest
-from conftest import CONF, compose_run
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
+from reliability_helpers import CONF, compose_run
 
 
 def _compose(overrides):

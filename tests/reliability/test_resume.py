@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
-from conftest import ROOT, cnn_overrides, compose_run, siren_overrides
+from reliability_helpers import ROOT, cnn_overrides, compose_run, siren_overrides
 
 import sss2bathy.cli.instantiate as instantiate_module
 from sss2bathy.cli.instantiate import resolve_ckpt_path

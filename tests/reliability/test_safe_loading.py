@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT, cnn_overrides, compose_run, siren_overrides
+from reliability_helpers import ROOT, cnn_overrides, compose_run, siren_overrides
 
 from sss2bathy.cli.train import train
 

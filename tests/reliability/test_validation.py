@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hydra
 import pytest
-from conftest import compose_run, siren_overrides
+from reliability_helpers import compose_run, siren_overrides
 
 import sss2bathy.data.pings as pings
 from sss2bathy.cli.train import train

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import trimesh
-from conftest import grid_mesh, north_pings, scene
+from sim_helpers import grid_mesh, north_pings, scene
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation, head_plane_normal, vehicle_normal
 from sss2bathy.sim.sonar import (

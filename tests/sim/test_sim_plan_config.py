@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from conftest import CONF, preset
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sim_helpers import CONF, preset
 
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.plan import SwathOutsideTerrainError, plan_survey, validate_swath

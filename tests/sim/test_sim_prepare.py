@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import preset
 from PIL import Image
+from sim_helpers import preset
 
 import sss2bathy.sim.generate as generate_module
 from sss2bathy.cli.render import main as render_main

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import preset
+from sim_helpers import preset
 
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.terrain import (

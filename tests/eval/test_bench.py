@@ -1,0 +1,159 @@
+"""Benchmark suite: every section at tiny sizes, the report's structure, the FLOP accounting."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from sss2bathy.cli import bench as bench_cli
+from sss2bathy.eval import bench
+
+TINY_SIREN = {"hidden": 16, "n_layers": 3, "omega0": 30.0, "n_bins": 48, "max_range_m": 40.0}
+TINY = {
+    "siren_step": {
+        **TINY_SIREN,
+        "n_pings": 4,
+        "altimeter_points": 50,
+        "n_batches": 2,
+        "warmup": 1,
+        "repeats": 2,
+        "mm_repeats": 2,
+    },
+    "finder": {
+        **TINY_SIREN,
+        "n_pings": 4,
+        "warmup": 0,
+        "repeats": 2,
+        "gd_repeats": 1,
+        "gd_max_iter": 600,
+    },
+    "cnn": {
+        "configs": {"tiny": {"base_width": 2, "n_blocks": 1, "batch_size": 2}},
+        "window": (16, 64),
+        "max_batch": 1,
+        "warmup": 1,
+        "repeats": 2,
+    },
+    "sim": {"scale": "tiny", "n_pings": 4, "warmup": 0, "repeats": 2},
+    "drape": {"n_pings": 12, "n_bins": 32, "cell_m": 4.0, "warmup": 0, "repeats": 2},
+}
+STATS = ("median", "min", "max", "q1", "q3")
+
+
+@pytest.fixture(scope="module")
+def doc(tmp_path_factory):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    stage_file = tmp_path_factory.mktemp("report") / "stage_times.json"
+    stage_file.write_text(json.dumps({"scale": "demo", "seconds": {"cnn": 95.2, "total": 612.0}}))
+    try:
+        yield bench.run_benchmarks(quick=True, device="cpu", stage_times=stage_file, overrides=TINY)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_every_section_reports_positive_finite_figures(doc):
+    assert list(doc["sections"]) == list(bench.SECTIONS)
+    for name, section in doc["sections"].items():
+        assert section["figures"], name
+        for f in section["figures"]:
+            for key in STATS:
+                assert math.isfinite(f[key]) and f[key] > 0, (name, f["name"], key, f[key])
+            assert f["min"] <= f["q1"] <= f["median"] <= f["q3"] <= f["max"], f
+            assert f["n"] >= 1
+    timed = [
+        f for s in ("siren_step", "cnn", "sim", "drape") for f in doc["sections"][s]["figures"]
+    ]
+    assert all(f["n"] >= 2 for f in timed if f["unit"] in ("s", "1/s", "windows/s", "rays/s"))
+
+
+def test_siren_step_counts_every_matmul(doc):
+    sec = doc["sections"]["siren_step"]
+    info = sec["info"]
+    pts = info["points"]
+    # the finder (no graph), the gradient pass of the valid bins and the altimeter heights
+    assert pts["gradient"] > 0 and pts["gradient_grad"] > 0 and pts["height_grad"] == 50
+    # analytic count from layer shapes x points == every mm/addmm dispatched (fwd + bwd)
+    assert info["recorded_siren_flops"] == info["analytic_flops"]["total"]
+    assert info["analytic_flops"]["backward"] > info["analytic_flops"]["forward"] / 10
+    assert info["recorded_flops"] >= info["recorded_siren_flops"]  # + tiny arc/normal bmm
+    figs = {f["name"]: f for f in sec["figures"]}
+    assert 0 < figs["valid bins per step"]["max"] <= 4 * 2 * 48
+    assert figs["matmul bound"]["median"] < figs["step time"]["median"]
+    ratio = figs["matmul bound / step time"]["median"] / 100
+    assert ratio == pytest.approx(info["bound_fraction"], rel=0.5)
+
+
+def test_siren_matmul_flops_by_hand():
+    # 3 layers, width 4: sine 2->4, 4->4, out 4->1; reverse 4x4 and 4x2
+    f = bench.siren_matmul_flops(4, 3, {"height": 1})
+    assert f == {"forward": 2 * (8 + 16 + 4), "backward": 0, "total": 56}
+    g = bench.siren_matmul_flops(4, 3, {"gradient_grad": 2})
+    fwd = 2 * 2 * (8 + 16 + 4 + 16 + 8)
+    bwd = 2 * (2 * 2 * (8 + 16 + 16 + 8) - 2 * 8)
+    assert g == {"forward": fwd, "backward": bwd, "total": fwd + bwd}
+
+
+def test_finder_solvers_agree_and_newton_is_faster(doc):
+    sec = doc["sections"]["finder"]
+    solvers = sec["info"]["solvers"]
+    for key in ("gd", "newton", "gd_warm", "newton_warm"):
+        s = solvers[key]
+        assert s["valid"] > 0
+        assert s["max_residual_mm"] <= 1.0 + 1e-3  # every solver at the same accuracy
+        assert s["found_of_reference"] > 0.9, (key, s)
+    # a warm start converges in about two Newton evaluations (the check + one step)
+    assert solvers["newton_warm"]["iters_mean"] <= 2.5
+    assert solvers["newton_warm"]["max_point_diff_mm"] < 5.0
+    assert solvers["gd"]["iters_mean"] > 5 * solvers["newton"]["iters_mean"]
+    assert all(v > 0 for v in sec["info"]["speedups"].values())
+    assert 0 < sec["info"]["warm_start_height_change_rms_m"] < 0.5
+
+
+def test_cnn_batch_cap_and_demo_stage_times(doc):
+    (windows, step) = doc["sections"]["cnn"]["figures"]
+    assert "capped" in windows["note"] and windows["unit"] == "windows/s"
+    assert windows["max"] == pytest.approx(1 / step["min"], rel=1e-6)  # batch 1
+    stages = {f["name"]: f["median"] for f in doc["sections"]["demo_stages"]["figures"]}
+    assert stages == {"cnn": 95.2, "total": 612.0}
+
+
+def test_report_files(doc, tmp_path):
+    paths = bench.write_report(doc, tmp_path / "bench")
+    data = json.loads(paths["json"].read_text())
+    assert set(data["sections"]) == set(bench.SECTIONS)
+    assert data["machine"]["device"] == "cpu" and data["mode"] == "quick"
+    md = paths["markdown"].read_text()
+    rows = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| Bench")]
+    n_figures = sum(len(s["figures"]) for s in doc["sections"].values())
+    assert len(rows) == n_figures
+    assert all(ln.count("|") == 9 for ln in rows)
+    assert "| SIREN training step | steps/s |" in md
+
+
+def test_summarize_and_bad_inputs(tmp_path):
+    s = bench.summarize([4.0, 1.0, 3.0, 2.0, 5.0])
+    assert (s["median"], s["min"], s["max"], s["q1"], s["q3"], s["n"]) == (3, 1, 5, 2, 4, 5)
+    with pytest.raises(ValueError, match="only"):
+        bench.run_benchmarks(only=["nope"])
+    with pytest.raises(ValueError, match="repeats"):
+        bench.time_runs(lambda: None, 0, 0)
+    with pytest.raises(SystemExit):
+        bench_cli.parse_args(["--only", "finder,nope"])
+    missing = bench.demo_stage_times(tmp_path / "none.json")
+    assert missing["figures"] == [] and missing["info"]["missing"]
+
+
+def test_cli_writes_report(tmp_path, capsys):
+    stage_file = tmp_path / "stage_times.json"
+    stage_file.write_text(json.dumps({"scale": "demo", "seconds": {"prepare_d1": 12.5}}))
+    out = tmp_path / "out"
+    rc = bench_cli.main(
+        ["--only", "demo_stages", "--stage-times", str(stage_file), "--out", str(out)]
+    )
+    assert rc == 0
+    assert json.loads((out / "bench.json").read_text())["sections"]["demo_stages"]["figures"]
+    assert "| make demo stages | prepare_d1 | 12.5 | s |" in capsys.readouterr().out
