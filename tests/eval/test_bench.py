@@ -6,7 +6,6 @@ import json
 import math
 
 import pytest
-import torch
 
 from sss2bathy.cli import bench as bench_cli
 from sss2bathy.eval import bench
@@ -45,14 +44,9 @@ STATS = ("median", "min", "max", "q1", "q3")
 
 @pytest.fixture(scope="module")
 def doc(tmp_path_factory):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
     stage_file = tmp_path_factory.mktemp("report") / "stage_times.json"
     stage_file.write_text(json.dumps({"scale": "demo", "seconds": {"cnn": 95.2, "total": 612.0}}))
-    try:
-        yield bench.run_benchmarks(quick=True, device="cpu", stage_times=stage_file, overrides=TINY)
-    finally:
-        torch.set_num_threads(threads)
+    return bench.run_benchmarks(quick=True, device="cpu", stage_times=stage_file, overrides=TINY)
 
 
 def test_every_section_reports_positive_finite_figures(doc):
@@ -126,6 +120,7 @@ def test_report_files(doc, tmp_path):
     data = json.loads(paths["json"].read_text())
     assert set(data["sections"]) == set(bench.SECTIONS)
     assert data["machine"]["device"] == "cpu" and data["mode"] == "quick"
+    assert data["other_load_cores"] is None or 0 <= data["other_load_cores"] <= 64
     md = paths["markdown"].read_text()
     rows = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| Bench")]
     n_figures = sum(len(s["figures"]) for s in doc["sections"].values())
