@@ -221,3 +221,18 @@ def test_cross_key_limits(base, overrides, key):
         OmegaConf.update(cfg, k, v)
     with pytest.raises(ConfigError, match=key):
         validate_config(cfg)
+
+
+def test_optuna_search_targets_existing_keys():
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=["experiment=cnn", "hparams_search=cnn_optuna", "scale=tiny"],
+            return_hydra_config=True,
+        )
+    sweeper = cfg.hydra.sweeper
+    assert sweeper._target_.endswith("OptunaSweeper") and sweeper.direction == "minimize"
+    assert cfg.optimized_metric == "val/mae"
+    for key in sweeper.params:
+        assert OmegaConf.select(cfg, key) is not None, f"searched key {key} is not in the config"
