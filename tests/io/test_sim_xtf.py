@@ -79,3 +79,43 @@ def test_simulated_survey_round_trips_through_xtf(tmp_path, sim_survey):
         ok = np.isfinite(want.altitude_m)
         np.testing.assert_allclose(got.altitude_m[ok], want.altitude_m[ok], atol=1e-4)
         np.testing.assert_allclose(got.rotation, want.rotation, atol=1e-6)
+
+
+def test_siren_lambert_end_to_end_from_xtf(tmp_path, sim_survey):
+    """XTF files written by the test -> data/survey=xtf -> SIREN-Lambert fit -> a map."""
+    from hydra import compose, initialize_config_dir
+
+    from sss2bathy.cli.train import train
+    from sss2bathy.survey import BathyGrid
+
+    for line in sim_survey.split_lines("test"):
+        write_xtf(line, tmp_path / "xtf" / f"{line.name}.xtf", sim_survey.origin)
+    out = tmp_path / "run"
+    overrides = [
+        "experiment=siren_lambert",
+        "scale=tiny",
+        "data/survey=xtf",
+        f"data.survey.files={tmp_path / 'xtf'}",
+        "data.survey.name=xtf_e2e",
+        "data.survey.n_bins=null",
+        f"data.survey.crs={sim_survey.origin['crs']}",
+        f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.output_dir={tmp_path / 'outputs'}",
+        f"model.output_dir={out}",
+        "logger=none",
+        "callbacks=none",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "torch_threads=1",
+    ]
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    metrics = train(cfg, run_dir=out)
+    assert np.isfinite(float(metrics["train/loss"]))
+    # no MBES grid: the map covers the tracks' bounds, heights near the altimeter depths
+    grid = BathyGrid.load_geotiff(out / "map.tif")
+    depths = np.concatenate([ln.altimeter_points()[:, 2] for ln in sim_survey.lines])
+    finite = grid.heights[np.isfinite(grid.heights)]
+    assert finite.size > 100
+    assert depths.min() - 5 < np.median(finite) < depths.max() + 5
+    assert (out / "metrics.json").is_file()
