@@ -85,7 +85,8 @@ def main(cfg: DictConfig) -> float | None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     metrics = train(cfg, run_dir)
     name = cfg.get("optimized_metric")
-    if name:
+    # evaluation-only runs (train=false) have no optimised metric to return
+    if name and cfg.get("train", True):
         if name not in metrics:
             raise KeyError(f"optimized_metric '{name}' was not logged; logged: {sorted(metrics)}")
         return float(metrics[name])
