@@ -53,6 +53,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from sss2bathy.data.sources import load_survey, survey_folder
+from sss2bathy.data.windows import EpochSampler
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
 
 log = logging.getLogger(__name__)
@@ -239,7 +240,7 @@ def derived_seed(*keys: int) -> int:
     return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1, np.uint64)[0] >> 1)
 
 
-class PingBatchSampler(Sampler[tuple[int, int]]):
+class PingBatchSampler(EpochSampler, Sampler[tuple[int, int]]):
     """Keys ``(epoch, k)`` of the ``n_batches`` batches of an epoch, ``k`` in order.
 
     Everything random about a batch derives from its key and the seed (:class:`PingBatches`),
@@ -254,13 +255,6 @@ class PingBatchSampler(Sampler[tuple[int, int]]):
         self.n_batches = int(n_batches)
         self.epoch = 0
         self._skip = 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
-
-    def skip(self, n_items: int) -> None:
-        """Leave out the first ``n_items`` batches of the next iteration (a resumed epoch)."""
-        self._skip = int(n_items)
 
     def __len__(self) -> int:
         return self.n_batches

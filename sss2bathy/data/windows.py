@@ -262,7 +262,23 @@ class SidescanWindowDataset(Dataset):
         }
 
 
-class FlipShuffleSampler(Sampler[int]):
+class EpochSampler:
+    """Epoch counter and resume skip shared by the resumable samplers: the draw of epoch
+    ``e`` depends on ``(seed, e)`` only, and :meth:`skip` drops the items a resumed epoch
+    has already served (:class:`ResumableDataLoader` calls it)."""
+
+    epoch: int = 0
+    _skip: int = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def skip(self, n_items: int) -> None:
+        """Leave out the first ``n_items`` of the next iteration (a resumed epoch)."""
+        self._skip = int(n_items)
+
+
+class FlipShuffleSampler(EpochSampler, Sampler[int]):
     """Shuffles ``n`` windows and flips each with probability 1/2 (item ``i + n``).
 
     The permutation and the flips come from ``seed`` and the epoch number (incremented
@@ -276,13 +292,6 @@ class FlipShuffleSampler(Sampler[int]):
         self.n, self.flip, self.shuffle, self.seed = n, flip, shuffle, seed
         self.epoch = 0
         self._skip = 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
-
-    def skip(self, n_items: int) -> None:
-        """Leave out the first ``n_items`` of the next iteration (a resumed epoch)."""
-        self._skip = int(n_items)
 
     def __len__(self) -> int:
         return self.n

@@ -47,7 +47,7 @@ def test_folder_digest_detects_truncation_alteration_and_loss(tmp_path):
 
 @pytest.fixture
 def tiny_cfg():
-    preset = _module("_reliability_sim", "tests/sim/conftest.py").preset
+    preset = _module("_reliability_sim", "tests/sim/sim_helpers.py").preset
     # smaller than scale=tiny: two short lines
     return preset(
         "synthetic_d1",
