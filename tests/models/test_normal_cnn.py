@@ -7,16 +7,6 @@ from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """One intra-op thread: the CI box has 2 cores shared by parallel jobs (oversubscribed
-    threads slow these tiny convolutions down 10-20x)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_output_shape_dtype_and_range():
     torch.manual_seed(0)
     net = NormalResNet(base_width=4, n_blocks=2)

@@ -29,16 +29,6 @@ H, W = 8, 16
 TEST_NAMES = ["synthetic_d1_demo", "synthetic_d2_demo"]
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """One intra-op thread: the CI box has 2 cores shared by parallel jobs (oversubscribed
-    threads slow these tiny convolutions down 10-20x)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 class RandomWindows(Dataset):
     """Seeded random windows with the windows DataModule's batch keys."""
 

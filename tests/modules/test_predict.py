@@ -24,16 +24,6 @@ from sss2bathy.modules.predict import (
 from sss2bathy.survey import MASK_SHADOW, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """One intra-op thread: the CI box has 2 cores shared by parallel jobs (oversubscribed
-    threads slow these tiny convolutions down 10-20x)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_stitch_reconstructs_waterfall_exactly():
     rng = np.random.default_rng(0)
     waterfall = rng.normal(size=(37, 23)).astype(np.float32)
