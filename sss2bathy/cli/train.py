@@ -48,6 +48,10 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
     model = hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial")
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
     loggers = instantiate_loggers(cfg.get("logger"))
+    if not loggers:
+        # a learning-rate monitor has nothing to write to without a logger (and Lightning
+        # refuses the combination): drop it rather than fail `logger=none` runs
+        callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
     trainer = hydra.utils.instantiate(
         cfg.trainer,
         callbacks=callbacks,
