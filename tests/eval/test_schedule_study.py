@@ -47,6 +47,7 @@ def test_study_compares_against_the_reference_final(tmp_path):
     assert res["runs"]["fast"]["time_to_goal_s"] == pytest.approx(15.0)
     assert res["runs"]["fast"]["fraction_of_reference_time"] == pytest.approx(15.0 / 400.0)
     assert math.isnan(res["runs"]["slow"]["time_to_goal_s"])
+    assert res["runs"]["fast"]["time_to_best_goal_s"] == pytest.approx(15.0)
     assert res["runs"]["paper"]["fraction_of_reference_time"] == pytest.approx(1.0)
     stopped = study({"paper": ref, "fast": fast}, "paper", reference_epochs=1500)
     assert not stopped["reference_complete"]
