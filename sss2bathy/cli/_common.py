@@ -41,8 +41,13 @@ def config_dir() -> str:
 
 
 def setup_environment() -> None:
-    """Set ``SSS2BATHY_ROOT`` so ``conf/paths`` resolves; call before ``@hydra.main``."""
+    """Set ``SSS2BATHY_ROOT`` so ``conf/paths`` resolves, and keep glibc from re-faulting the
+    memory of large tensors (:func:`sss2bathy.utils.alloc.tune_allocator`; opt out with
+    ``SSS2BATHY_MALLOC=default``); call before ``@hydra.main``."""
+    from sss2bathy.utils.alloc import tune_allocator
+
     os.environ.setdefault("SSS2BATHY_ROOT", str(project_root()))
+    tune_allocator()
 
 
 def apply_extras(cfg: DictConfig) -> None:

@@ -48,6 +48,11 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
     model = hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial")
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
     loggers = instantiate_loggers(cfg.get("logger"))
+    from sss2bathy.modules.curve import MetricCurve
+
+    for c in callbacks:
+        if isinstance(c, MetricCurve) and c.dirpath is None and run_dir is not None:
+            c.dirpath = Path(run_dir)  # metric_curve.csv next to the run's other outputs
     if not loggers:
         # a learning-rate monitor has nothing to write to without a logger (and Lightning
         # refuses the combination): drop it rather than fail `logger=none` runs

@@ -15,12 +15,30 @@ Solvers (all vectorised over every bin at once, under ``no_grad``):
 * ``"gd"`` — the paper's fixed-step gradient descent (eq. 12),
   ``theta <- theta - (lambda / r) d/dtheta f^2``, from ``theta0`` (the warm start) or the
   tilt, for at most ``max_iter`` steps. A bin stops moving once ``|f| <= tol_m``.
-* ``"newton"`` — safeguarded Newton on a bracket: a coarse scan of ``n_scan`` angles over
-  the beam finds the *first* crossing (the smallest theta where ``f`` turns from negative,
-  above ground, to ``>= 0``, below ground); the iteration starts at the regula-falsi point
-  of that bracket, takes Newton steps ``theta - f / f'`` and falls back to bisection
-  whenever a step leaves the bracket; the bracket shrinks with every evaluation.
+* ``"newton"`` — safeguarded Newton on a bracket: a scan from the beam's upper edge (below)
+  finds the *first* crossing (the smallest theta where ``f`` turns from negative, above
+  ground, to ``>= 0``, below ground); the iteration starts at the regula-falsi point of
+  that bracket, takes Newton steps ``theta - f / f'`` and falls back to bisection whenever
+  a step leaves the bracket; the bracket shrinks with every evaluation.
+* ``"secant"`` — the same bracket, height-only (the derivative-free steps of Brent's
+  method): the first step is the bracket's regula-falsi point, then inverse quadratic
+  interpolation through the last three iterates, or the secant through the last two,
+  whichever lands inside the bracket; bisection when neither does or the bracket has not
+  halved over two evaluations. On a SIREN a height costs about 1/2.4 of a height with
+  gradient and this needs about as many evaluations as Newton: the cheaper cold solver.
 * ``"bisection"`` — bisection on the same bracket (robust reference, height-only).
+
+Cold scan (bracketing solvers). From the beam's upper edge ``theta_lo`` the scan steps
+towards nadir. At an angle where the arc is ``d = -f > 0`` metres above ground no crossing
+can lie within ``d / (r sqrt(1 + L^2))`` rad, if the surface's slope along the arc is at
+most ``L = scan_max_slope`` (``|f'| <= |grad Phi| |t_xy| + |t_z| <= r sqrt(1 + L^2)``, the
+arc's tangent ``t`` having length ``r``): the next angle is that far plus the grid spacing
+``(theta_hi - theta_lo) / (n_scan - 1)``. Every stretch not covered by that bound is thus
+at most one grid spacing long, as between the angles of a plain grid scan of ``n_scan``
+angles, which ``scan_max_slope = inf`` reproduces exactly; high above ground (far from
+the crossing) the steps are much longer. The first step that ends with ``f >= 0``
+brackets the first crossing, up to features narrower than a grid spacing (or steeper
+than ``L`` within the longer steps).
 
 Warm start (``theta0``; NaN = unknown, ``+inf`` = "no crossing last time"), bracketing
 solvers: first ``f`` (and ``f'`` for Newton) at ``theta0``: if ``|f| <= tol_m`` (and the
@@ -37,7 +55,7 @@ dips into a rock in between stays invalid until the bin is reset to NaN).
 A bin is valid when its crossing lies in the beam and ``|f| <= tol_m`` at the returned
 angle; invalid bins get ``theta = NaN``. ``n_iter`` counts the solver's surface
 evaluations per bin, with a derivative (Newton, gradient descent) or height-only
-(bisection), including the warm-start check at ``theta0``; the extra height-only
+(secant, bisection), including the warm-start check at ``theta0``; the extra height-only
 evaluations of the scan and of the warm brackets are not included.
 """
 
@@ -49,8 +67,8 @@ from typing import Protocol
 
 import torch
 
-SOLVERS = ("newton", "gd", "bisection")
-DEFAULT_MAX_ITER = {"newton": 16, "bisection": 48, "gd": 400}
+SOLVERS = ("newton", "secant", "gd", "bisection")
+DEFAULT_MAX_ITER = {"newton": 16, "secant": 32, "bisection": 48, "gd": 400}
 # Warm brackets tried before a cold scan: theta0 -+ warm_bracket_rad * factor.
 WARM_EXPANSION = (1.0, 4.0, 16.0)
 
@@ -158,6 +176,7 @@ def find_intersections(
     tol_m: float = 1e-3,
     gd_step: float = 0.01,
     n_scan: int = 16,
+    scan_max_slope: float = 1.0,
     warm_bracket_rad: float = math.radians(0.5),
     chunk: int = 8192,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -170,12 +189,15 @@ def find_intersections(
         range_m: ``(N,)`` slant ranges (m).
         side: ``(N,)`` long, 0 port / 1 starboard.
         theta_limits: ``(theta_lo, theta_hi)`` beam limits (rad).
-        solver: ``"newton"`` | ``"gd"`` | ``"bisection"`` (see the module docstring).
+        solver: ``"newton"`` | ``"secant"`` | ``"gd"`` | ``"bisection"`` (module docstring).
         theta0: ``(N,)`` warm-start angles (rad), NaN where unknown; ``None`` = cold.
         max_iter: solver iterations (default per solver: :data:`DEFAULT_MAX_ITER`).
         tol_m: convergence tolerance on ``|f|``, the vertical distance (m).
         gd_step: ``lambda`` of eq. 12 (``"gd"`` only), m^-1 * rad * m.
-        n_scan: angles of the coarse bracketing scan over the beam (bracketing solvers).
+        n_scan: the cold scan's resolution: its longest unbounded step is
+            ``(theta_hi - theta_lo) / (n_scan - 1)`` (bracketing solvers; module docstring).
+        scan_max_slope: surface slope ``L`` (m/m) the cold scan assumes where it steps
+            further than one grid spacing; ``inf`` = a plain grid of ``n_scan`` angles.
         warm_bracket_rad: half-width of the warm-start bracket (rad).
         chunk: points per surface evaluation.
 
@@ -186,13 +208,27 @@ def find_intersections(
     lo, hi = _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, max_iter)
     if n_scan < 2:
         raise ValueError(f"n_scan: expected >= 2 scan angles, found {n_scan}")
+    if not float(scan_max_slope) >= 0:
+        raise ValueError(
+            f"scan_max_slope: expected a slope >= 0 (inf allowed), found {scan_max_slope}"
+        )
     max_iter = int(max_iter) if max_iter is not None else DEFAULT_MAX_ITER[solver]
     arcs = _Arcs(sonar, R, range_m, side)
     res = _Residual(surface, arcs, int(chunk))
     if solver == "gd":
         return _gradient_descent(res, arcs, lo, hi, theta0, max_iter, tol_m, gd_step)
     return _bracketed_solve(
-        res, sonar.shape[0], lo, hi, theta0, solver, n_scan, warm_bracket_rad, tol_m, max_iter
+        res,
+        sonar.shape[0],
+        lo,
+        hi,
+        theta0,
+        solver,
+        n_scan,
+        float(scan_max_slope),
+        warm_bracket_rad,
+        tol_m,
+        max_iter,
     )
 
 
@@ -243,13 +279,15 @@ class _Solve:
         self.converged[idx] = True
 
 
-def _bracketed_solve(res, n, lo, hi, theta0, solver, n_scan, warm_delta, tol_m, max_iter):
+def _bracketed_solve(
+    res, n, lo, hi, theta0, solver, n_scan, max_slope, warm_delta, tol_m, max_iter
+):
     dev, dt = res.arcs.r.device, res.arcs.r.dtype
     st = _Solve(n, dev, dt)
     cold = torch.ones(n, dtype=torch.bool, device=dev)
     if theta0 is not None:
         cold = _warm_start(res, st, lo, hi, theta0.to(dt), solver, warm_delta, tol_m)
-    _scan(res, st, cold.nonzero().squeeze(-1), lo, hi, n_scan, tol_m, dt)
+    _scan(res, st, cold.nonzero().squeeze(-1), lo, hi, n_scan, tol_m, dt, max_slope)
     _refine(res, st, solver, max_iter, tol_m)
     return st.theta, st.converged, st.n_iter
 
@@ -303,38 +341,47 @@ def _warm_start(res, st, lo, hi, theta0, solver, warm_delta, tol_m):
     return cold
 
 
-def _scan(res, st, active, lo, hi, n_scan, tol_m, dt):
-    """Cold scan: the first grid angle with ``f >= 0`` after one with ``f < 0``."""
+def _scan(res, st, active, lo, hi, n_scan, tol_m, dt, max_slope):
+    """Cold scan (module docstring): the first step that ends with ``f >= 0``, from ``f < 0``."""
     if active.numel() == 0:
         return
-    grid = torch.linspace(lo, hi, n_scan, device=active.device, dtype=dt)
-    f_prev = res.value(grid[0].expand(active.numel()), active)
+    spacing = (hi - lo) / (n_scan - 1)
+    # |f'(theta)| <= |grad Phi| |t_xy| + |t_z| <= sqrt(1 + L^2) |t| with |t| = r
+    inv_lip = 0.0 if math.isinf(max_slope) else 1.0 / math.sqrt(1.0 + max_slope**2)
+    theta = torch.full((active.numel(),), lo, device=active.device, dtype=dt)
+    f_prev = res.value(theta, active)
     # At the beam's upper edge the arc must still be above ground, or the crossing is
     # above the beam (out of beam) -- unless it lies on the edge itself (within tol_m).
     edge = (f_prev >= 0) & (f_prev <= tol_m)
-    st.set_bracket(active[edge], grid[0], grid[0], f_prev[edge], f_prev[edge])
-    active, f_prev = active[f_prev < 0], f_prev[f_prev < 0]
-    for k in range(1, n_scan):
-        if active.numel() == 0:
-            return
-        f_k = res.value(grid[k].expand(active.numel()), active)
+    st.set_bracket(active[edge], theta[edge], theta[edge], f_prev[edge], f_prev[edge])
+    up = f_prev < 0
+    active, theta, f_prev = active[up], theta[up], f_prev[up]
+    while active.numel():
+        step = spacing - f_prev * (inv_lip / res.arcs.r[active])
+        # a step that would stop within 1e-6 rad of the lower beam edge goes to the edge
+        x = torch.where(theta + step >= hi - 1e-6, torch.full_like(theta, hi), theta + step)
+        f_k = res.value(x, active)
         hit = f_k >= 0
-        st.set_bracket(active[hit], grid[k - 1], grid[k], f_prev[hit], f_k[hit])
-        keep = ~hit & torch.isfinite(f_k)
-        active, f_prev = active[keep], f_k[keep]
-    # Still above ground at the lower beam edge: a crossing only if it is on the edge.
-    edge = f_prev.abs() <= tol_m
-    st.set_bracket(active[edge], grid[-1], grid[-1], f_prev[edge], f_prev[edge])
+        st.set_bracket(active[hit], theta[hit], x[hit], f_prev[hit], f_k[hit])
+        # Still above ground at the lower beam edge: a crossing only if it is on the edge.
+        end = ~hit & (x >= hi)
+        edge = end & (f_k.abs() <= tol_m)
+        st.set_bracket(active[edge], x[edge], x[edge], f_k[edge], f_k[edge])
+        keep = ~hit & ~end & torch.isfinite(f_k)
+        active, theta, f_prev = active[keep], x[keep], f_k[keep]
 
 
 def _refine(res, st, solver, max_iter, tol_m):
-    """Newton-with-bisection or pure bisection inside the brackets."""
+    """Newton-with-bisection, secant-with-bisection or bisection inside the brackets."""
     active = (st.bracketed & ~st.converged).nonzero().squeeze(-1)
     a, b, fa, fb = st.a, st.b, st.fa, st.fb
     # A bracket end already on the surface (|f(b)| <= tol, e.g. a beam edge) is the answer.
     exact = fb[active].abs() <= tol_m
     st.set_done(active[exact], b[active[exact]])
     active = active[~exact]
+    if solver == "secant":
+        _refine_secant(res, st, active, max_iter, tol_m)
+        return
     if solver == "newton":
         # Start at the regula-falsi point of the bracket (exact for a locally planar arc).
         x = a[active] - fa[active] * (b[active] - a[active]) / (fb[active] - fa[active])
@@ -365,3 +412,46 @@ def _refine(res, st, solver, max_iter, tol_m):
             x_next, x_done = mid, x
         st.set_done(active[done], x_done[done])
         active, x = active[~done], x_next[~done]
+
+
+def _refine_secant(res, st, active, max_iter, tol_m):
+    """Safeguarded secant / inverse quadratic steps in the brackets of ``active`` (heights)."""
+    a, b, fa, fb = (t[active] for t in (st.a, st.b, st.fa, st.fb))
+    # The steps go through the latest iterates; before the first evaluation those are the
+    # bracket ends (the first step is regula falsi), the better end counting as the later.
+    b_last = fb.abs() <= fa.abs()
+    x1, f1 = torch.where(b_last, b, a), torch.where(b_last, fb, fa)
+    x2, f2 = torch.where(b_last, a, b), torch.where(b_last, fa, fb)
+    x = a - fa * (b - a) / (fb - fa)
+    # bracket widths before the current and the previous evaluation
+    width, width_before = b - a, torch.full_like(a, torch.inf)
+    for _ in range(max_iter):
+        if active.numel() == 0:
+            break
+        f = res.value(x, active)
+        st.n_iter[active] += 1
+        below = f >= 0
+        a, fa = torch.where(below, a, x), torch.where(below, fa, f)
+        b, fb = torch.where(below, x, b), torch.where(below, f, fb)
+        # inverse quadratic interpolation through the last three iterates, else the secant
+        # through the last two, else (outside the bracket) bisection
+        iqi = (
+            x2 * f1 * f / ((f2 - f1) * (f2 - f))
+            + x1 * f2 * f / ((f1 - f2) * (f1 - f))
+            + x * f2 * f1 / ((f - f2) * (f - f1))
+        )
+        secant = x - f * (x - x1) / (f - f1)
+        step = torch.where(torch.isfinite(iqi) & (iqi > a) & (iqi < b), iqi, secant)
+        inside = torch.isfinite(step) & (step > a) & (step < b)
+        # A converged bin still takes its last step (free, superlinearly closer); outside
+        # the bracket it keeps x.
+        done = f.abs() <= tol_m
+        st.set_done(active[done], torch.where(inside, step, x)[done])
+        slow = (b - a) > 0.5 * width_before
+        x_next = torch.where(inside & ~slow, step, 0.5 * (a + b))
+        width, width_before = b - a, width
+        keep = ~done
+        active, a, b, fa, fb, width, width_before = (
+            t[keep] for t in (active, a, b, fa, fb, width, width_before)
+        )
+        x2, f2, x1, f1, x = x1[keep], f1[keep], x[keep], f[keep], x_next[keep]

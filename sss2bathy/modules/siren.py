@@ -64,18 +64,19 @@ from sss2bathy.losses.siren import height_loss, total_loss
 from sss2bathy.metrics.bathy import map_gradient
 from sss2bathy.models.intersection import SOLVERS, find_intersections
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
-from sss2bathy.models.siren import Siren
+from sss2bathy.models.siren import Siren, autocast_disabled
 from sss2bathy.survey import BathyGrid
 
 log = logging.getLogger(__name__)
 
 FINDER_DEFAULTS: dict[str, Any] = {
-    "solver": "newton",
+    "solver": "secant",
     "max_iter": None,
     "tol_m": 1e-3,
     "gd_step": 0.01,
     "warm_start": True,
     "n_scan": 16,
+    "scan_max_slope": 1.0,
     "warm_bracket_deg": 0.5,
     "chunk": 8192,
 }
@@ -124,34 +125,37 @@ def arc_geometry(
     range_m = batch["range_m"][bi]
     warm = finder["warm_start"] and theta_cache is not None
     cache_idx = (batch["index"][pi], si, bi)
-    theta, valid, n_iter = find_intersections(
-        siren,
-        sonar,
-        rot,
-        range_m,
-        si,
-        theta_limits,
-        solver=finder["solver"],
-        theta0=theta_cache[cache_idx] if warm else None,
-        max_iter=finder["max_iter"],
-        tol_m=finder["tol_m"],
-        gd_step=finder["gd_step"],
-        n_scan=finder["n_scan"],
-        warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
-        chunk=finder["chunk"],
-    )
-    if warm:
-        # +inf marks "no crossing": next time only the beam's ends are checked
-        theta_cache[cache_idx] = torch.where(valid, theta, torch.inf).to(theta_cache.dtype)
-    v = valid.nonzero().squeeze(-1)
-    pi, si, bi = pi[v], si[v], bi[v]
-    sonar, rot, range_m, theta = sonar[v], rot[v], range_m[v], theta[v]
-    points = arc_point(sonar, rot, range_m, theta, si)
-    # in chunks: CPU caches/allocators like a few thousand points per product
-    grad = torch.cat(
-        [siren.height_and_gradient(c)[1] for c in points[:, :2].split(finder["chunk"])]
-    )
-    n_lat, n_up = head_plane_normal_from_gradient(grad[:, 0], grad[:, 1], rot, si)
+    # Geometry in float32 even under an enclosing autocast (bf16 would move crossings and
+    # normals by centimetres); the SIREN picks its own precision (Siren.precision).
+    with autocast_disabled(sonar.device):
+        theta, valid, n_iter = find_intersections(
+            siren,
+            sonar,
+            rot,
+            range_m,
+            si,
+            theta_limits,
+            solver=finder["solver"],
+            theta0=theta_cache[cache_idx] if warm else None,
+            max_iter=finder["max_iter"],
+            tol_m=finder["tol_m"],
+            gd_step=finder["gd_step"],
+            n_scan=finder["n_scan"],
+        scan_max_slope=finder["scan_max_slope"],
+            warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
+            chunk=finder["chunk"],
+        )
+        if warm:
+            # +inf marks "no crossing": next time only the beam's ends are checked
+            theta_cache[cache_idx] = torch.where(valid, theta, torch.inf).to(theta_cache.dtype)
+        v = valid.nonzero().squeeze(-1)
+        pi, si, bi = pi[v], si[v], bi[v]
+        sonar, rot, range_m, theta = sonar[v], rot[v], range_m[v], theta[v]
+        points = arc_point(sonar, rot, range_m, theta, si)
+    # the SIREN blocks its points itself (Siren.chunk: cache-sized on CPU)
+    grad = siren.height_and_gradient(points[:, :2])[1]
+    with autocast_disabled(sonar.device):
+        n_lat, n_up = head_plane_normal_from_gradient(grad[:, 0], grad[:, 1], rot, si)
     geo = ArcGeometry(
         points=points,
         theta=theta,
@@ -419,6 +423,7 @@ class SirenModule(pl.LightningModule):
             "siren/hidden": self.siren.hidden,
             "siren/n_layers": self.siren.n_layers,
             "siren/omega0": self.siren.omega0,
+            "siren/precision": self.siren.precision,
             "sensor": type(self.sensor).__name__ if self.sensor is not None else "none",
             "w_height": self.w_height,
             "direct_fit": self.direct_fit,

@@ -1,4 +1,5 @@
-"""Intersection finder vs analytic arc/surface crossings (plane, sphere cap), all solvers."""
+"""Intersection finder vs analytic arc/surface crossings (plane, sphere cap), all solvers;
+the cold scan vs a dense float64 reference on smooth, rough and occluding surfaces."""
 
 from __future__ import annotations
 
@@ -94,6 +95,7 @@ CASES = {
 }
 SOLVERS = {
     "newton": {},
+    "secant": {},
     "bisection": {},
     "gd": {"max_iter": 3000, "gd_step": 0.01},
 }
@@ -131,15 +133,16 @@ def test_finder_matches_analytic_crossing_within_1mm(case, solver):
         # a bin without a crossing in the beam is never valid
         assert not valid[~ok].any()
     assert torch.isnan(theta[~valid]).all() and torch.isfinite(theta[valid]).all()
-    if solver == "newton":
+    if solver in ("newton", "secant"):
         assert n_iter[in_beam].float().mean() <= 3.0
 
 
-def test_warm_start_reuses_the_previous_solution():
+@pytest.mark.parametrize("solver", ["newton", "secant"])
+def test_warm_start_reuses_the_previous_solution(solver):
     surface, spread, ranges = CASES["cap"]
     sonar, R, r, side = _bins(8, spread, ranges, seed=3)
     args = (surface, sonar, R, r, side, BEAM)
-    theta, valid, n_cold = find_intersections(*args, tol_m=1e-5)
+    theta, valid, n_cold = find_intersections(*args, tol_m=1e-5, solver=solver)
     calls = {"n": 0}
 
     class Counting:
@@ -151,10 +154,12 @@ def test_warm_start_reuses_the_previous_solution():
             calls["n"] += xy.shape[0]
             return surface.height_and_gradient(xy)
 
-    find_intersections(Counting(), *args[1:], tol_m=1e-5)
+    find_intersections(Counting(), *args[1:], tol_m=1e-5, solver=solver)
     cold_points = calls["n"]
     calls["n"] = 0
-    theta2, valid2, n_warm = find_intersections(Counting(), *args[1:], theta0=theta, tol_m=1e-5)
+    theta2, valid2, n_warm = find_intersections(
+        Counting(), *args[1:], theta0=theta, tol_m=1e-5, solver=solver
+    )
     assert torch.equal(valid, valid2)
     assert torch.allclose(theta[valid], theta2[valid], atol=1e-7)
     assert n_warm[valid].float().mean() <= n_cold[valid].float().mean()
@@ -162,16 +167,18 @@ def test_warm_start_reuses_the_previous_solution():
     # "no crossing last time" (+inf): the beam's ends still enclose one -> found again;
     # bins without a crossing cost two evaluations instead of a scan
     inf = torch.full_like(theta, torch.inf)
-    theta4, valid4, _ = find_intersections(*args, theta0=inf, tol_m=1e-5)
+    theta4, valid4, _ = find_intersections(*args, theta0=inf, tol_m=1e-5, solver=solver)
     assert torch.equal(valid, valid4) and torch.allclose(theta[valid], theta4[valid], atol=1e-7)
     calls["n"] = 0
     none = ~valid
     assert none.sum() > 10
     sub = (sonar[none], R[none], r[none], side[none], BEAM)
-    find_intersections(Counting(), *sub, theta0=inf[none], tol_m=1e-5)
+    find_intersections(Counting(), *sub, theta0=inf[none], tol_m=1e-5, solver=solver)
     assert calls["n"] == 2 * int(none.sum())
     # a stale warm start (wrong by 20 degrees) still finds the same crossing via the scan
-    theta3, valid3, _ = find_intersections(*args, theta0=theta + math.radians(20.0), tol_m=1e-5)
+    theta3, valid3, _ = find_intersections(
+        *args, theta0=theta + math.radians(20.0), tol_m=1e-5, solver=solver
+    )
     assert torch.equal(valid, valid3)
     assert torch.allclose(theta[valid], theta3[valid], atol=1e-6)
 
@@ -215,7 +222,7 @@ def test_finder_validates_inputs():
         torch.zeros(3, dtype=torch.long),
     )
     with pytest.raises(ValueError, match="solver"):
-        find_intersections(surface, s, R, r, side, BEAM, solver="secant")
+        find_intersections(surface, s, R, r, side, BEAM, solver="brent")
     with pytest.raises(ValueError, match="R"):
         find_intersections(surface, s, R[:2], r, side, BEAM)
     with pytest.raises(ValueError, match="side"):
@@ -224,6 +231,218 @@ def test_finder_validates_inputs():
         find_intersections(surface, s, R, r, side, (1.0, 0.5))
     with pytest.raises(ValueError, match="tol_m"):
         find_intersections(surface, s, R, r, side, BEAM, tol_m=0.0)
+    for bad in (-0.5, math.nan):
+        with pytest.raises(ValueError, match="scan_max_slope"):
+            find_intersections(surface, s, R, r, side, BEAM, scan_max_slope=bad)
+
+
+# ------------------------------------------------------------------------- cold scan
+class Waves:
+    """z = z0 + sum_k a_k sin(k_k . xy + phi_k) with |grad z| <= sum_k a_k |k_k| = max_slope."""
+
+    def __init__(self, z0: float, wavelengths: tuple[float, float], max_slope: float, seed: int):
+        g = torch.Generator().manual_seed(seed)
+        n = 6
+        lam = wavelengths[0] + (wavelengths[1] - wavelengths[0]) * torch.rand(
+            n, generator=g, dtype=torch.float64
+        )
+        ang = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+        self.k = torch.stack([ang.cos(), ang.sin()], 1) * (2 * math.pi / lam).unsqueeze(1)
+        self.phi = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+        w = 0.5 + torch.rand(n, generator=g, dtype=torch.float64)
+        self.a = w * max_slope / (w * self.k.norm(dim=1)).sum()
+        self.z0 = z0
+
+    def height_and_gradient(self, xy):
+        k, a, phi = (t.to(xy.dtype) for t in (self.k, self.a, self.phi))
+        arg = xy @ k.T + phi
+        return self.z0 + torch.sin(arg) @ a, (torch.cos(arg) * a) @ k
+
+    def height(self, xy):
+        return self.height_and_gradient(xy)[0]
+
+
+class Ridge:
+    """A ridge along y on a flat floor ``z0``: trapezoid cross-section of slopes +-``slope``.
+
+    It rises from ``x_foot`` to ``height`` above the floor, is flat for ``top`` m and falls
+    back; its slope is at most ``slope`` everywhere (Lipschitz).
+    """
+
+    def __init__(self, z0: float, x_foot: float, height: float, top: float, slope: float):
+        self.z0, self.x_foot, self.h, self.slope = z0, x_foot, height, slope
+        self.x_back = x_foot + 2 * height / slope + top
+
+    def height_and_gradient(self, xy):
+        x = xy[:, 0]
+        up, down = self.slope * (x - self.x_foot), self.slope * (self.x_back - x)
+        h = torch.minimum(up, down).clamp(0.0, self.h)
+        ramp = (h > 0) & (h < self.h)
+        gx = torch.where(ramp, torch.where(up < down, self.slope, -self.slope), 0.0)
+        return self.z0 + h, torch.stack([gx, torch.zeros_like(gx)], 1).to(xy.dtype)
+
+    def height(self, xy):
+        return self.height_and_gradient(xy)[0]
+
+
+def _dense_reference(surface, sonar, R, r, side, limits, m: int = 2001):
+    """First crossing from ``f`` on ``m`` angles in float64, refined by bisection.
+
+    Returns ``theta (N,)`` (NaN: none in the beam, or the beam starts below ground), the
+    number of entries into the ground along each arc and the width (rad) of the first
+    stretch below ground (``inf`` where it reaches the beam's lower edge).
+    """
+    th = torch.linspace(*limits, m, dtype=torch.float64)
+    n = sonar.shape[0]
+
+    def f(theta, idx):
+        p = arc_point(sonar[idx], R[idx], r[idx], theta, side[idx])
+        return surface.height(p[:, :2]) - p[:, 2]
+
+    rows = torch.arange(n).repeat_interleave(m)
+    F = torch.cat(
+        [f(t, i) for t, i in zip(th.repeat(n).split(200_000), rows.split(200_000), strict=True)]
+    ).reshape(n, m)
+    below = F >= 0
+    entries = (~below[:, :-1] & below[:, 1:]).sum(1)
+    has = below.any(1) & ~below[:, 0]
+    e = below.int().argmax(1).clamp_min(1)
+    after = (torch.arange(m) > e.unsqueeze(1)) & ~below
+    # below ground to the beam's lower edge: as wide as any scan can see
+    width = torch.where(after.any(1), th[after.int().argmax(1)] - th[e], torch.inf)
+    a, b = th[e - 1], th[e]
+    idx = torch.arange(n)
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        down = f(mid, idx) >= 0
+        a, b = torch.where(down, a, mid), torch.where(down, mid, b)
+    return torch.where(has, b, torch.nan), entries, width
+
+
+def _level_starboard_bins(n_pings: int, ranges: torch.Tensor, seed: int = 0):
+    """Pings along y (heading north, roll/pitch within 1 deg), starboard (east) bins only."""
+    g = torch.Generator().manual_seed(seed)
+    y = torch.linspace(-20.0, 20.0, n_pings, dtype=torch.float64)
+    pos = torch.stack([torch.zeros_like(y), y, torch.zeros_like(y)], 1)
+    tilt = (torch.rand(n_pings, 2, generator=g, dtype=torch.float64) - 0.5) * math.radians(2.0)
+    R = attitude_to_rotation(torch.zeros_like(y), tilt[:, 0], tilt[:, 1])
+    nb = ranges.shape[0]
+    pi = torch.arange(n_pings).repeat_interleave(nb)
+    r = ranges.double().repeat(n_pings)
+    return pos[pi], R[pi], r, torch.ones(n_pings * nb, dtype=torch.long)
+
+
+# |f| <= 0.1 mm is a few mm along an arc that grazes the surface; other crossings of the
+# same arc lie more than a grid spacing (> 0.5 m) away
+SAME_CROSSING_MM = 5.0
+
+
+def _points_mm(sonar, R, r, side, theta_a, theta_b):
+    pa = arc_point(sonar, R, r, torch.nan_to_num(theta_a), side)
+    pb = arc_point(sonar, R, r, torch.nan_to_num(theta_b), side)
+    return (pa - pb).norm(dim=-1) * 1e3
+
+
+@pytest.mark.parametrize("solver", ["newton", "secant", "bisection"])
+def test_cold_scan_takes_the_crossing_in_front_of_an_occluding_ridge(solver):
+    # A 4 m ridge (slopes 0.95 <= scan_max_slope) beside the track: arcs of 10.4-11.6 m
+    # range enter its top or far side, leave through its front face (an occluded stretch)
+    # and meet the floor again further down; the first crossing is on the ridge.
+    surface = Ridge(-10.0, x_foot=5.0, height=4.0, top=3.0, slope=0.95)
+    limits = (0.0, math.radians(80.0))
+    spacing = (limits[1] - limits[0]) / 15  # default n_scan = 16
+    sonar, R, r, side = _level_starboard_bins(6, torch.linspace(10.4, 11.6, 40))
+    ref, entries, width = _dense_reference(surface, sonar, R, r, side, limits)
+    occluded = (entries >= 2) & (width > spacing)
+    assert occluded.sum() >= 30 and torch.isfinite(ref).all()
+    theta, valid, _ = find_intersections(surface, sonar, R, r, side, limits, solver, tol_m=1e-4)
+    assert valid.all()
+    assert _points_mm(sonar, R, r, side, theta, ref)[width > spacing].max() < SAME_CROSSING_MM
+    # on the ridge, not on the floor behind it
+    p = arc_point(sonar, R, r, theta, side)
+    assert (p[occluded, 2] > -10.0 + 0.5).all()
+    # the plain grid scan (scan_max_slope = inf) takes the same crossings
+    grid, _, _ = find_intersections(
+        surface, sonar, R, r, side, limits, solver, tol_m=1e-4, scan_max_slope=math.inf
+    )
+    assert _points_mm(sonar, R, r, side, theta, grid).max() < SAME_CROSSING_MM
+
+
+@pytest.mark.parametrize("kind", ["smooth", "rough"])
+def test_cold_scan_matches_a_dense_reference_on_random_surfaces(kind):
+    wavelengths, slope = {"smooth": ((20.0, 60.0), 0.3), "rough": ((2.0, 6.0), 0.9)}[kind]
+    surface = Waves(-15.0, wavelengths, slope, seed=1)
+    sonar, R, r, side = _bins(10, 15.0, torch.linspace(5.0, 45.0, 40), seed=2)
+    spacing = (BEAM[1] - BEAM[0]) / 15
+    ref, entries, width = _dense_reference(surface, sonar, R, r, side, BEAM)
+    found = torch.isfinite(ref)
+    assert found.sum() > 500 and (~found).sum() > 100  # near ranges never reach the floor
+    wide = ~found | (width > spacing)  # no stretch below ground narrower than the grid
+    assert wide.float().mean() > 0.99
+    results = {}
+    for solver in ("newton", "secant", "bisection"):
+        theta, valid, n_iter = find_intersections(
+            surface, sonar, R, r, side, BEAM, solver, tol_m=1e-4
+        )
+        assert torch.equal(valid[wide], found[wide])
+        assert _points_mm(sonar, R, r, side, theta, ref)[valid & wide].max() < SAME_CROSSING_MM
+        p = arc_point(sonar[valid], R[valid], r[valid], theta[valid], side[valid])
+        assert (surface.height(p[:, :2]) - p[:, 2]).abs().max() <= 1e-4
+        results[solver] = theta
+        if solver != "bisection":  # evaluations per bin to 0.1 mm after the scan
+            assert n_iter[valid].float().mean() <= {"smooth": 2.2, "rough": 3.5}[kind]
+    # the three solvers agree with each other to the tolerance
+    for solver in ("newton", "secant"):
+        both = torch.isfinite(results[solver]) & torch.isfinite(results["bisection"])
+        d = _points_mm(sonar, R, r, side, results[solver], results["bisection"])
+        assert d[both].max() < SAME_CROSSING_MM
+
+
+class _Counting:
+    """Counts the points of height-only and height-and-gradient evaluations."""
+
+    def __init__(self, surface) -> None:
+        self.surface, self.heights, self.gradients = surface, 0, 0
+
+    def height(self, xy):
+        self.heights += xy.shape[0]
+        return self.surface.height(xy)
+
+    def height_and_gradient(self, xy):
+        self.gradients += xy.shape[0]
+        return self.surface.height_and_gradient(xy)
+
+
+def test_cold_scan_cost_grid_vs_slope_bounded_steps():
+    surface, spread, ranges = CASES["plane"]
+    sonar, R, r, side = _bins(12, spread, ranges)
+    theta_true, ok = surface.crossing(sonar, R, r, side)
+    lo, hi = BEAM
+    spacing = (hi - lo) / 15
+    # scan_max_slope = inf: a plain grid scan of 16 angles, each bin up to (and including)
+    # the first grid angle below ground, or all 16
+    k_first = torch.ceil((theta_true - lo) / spacing).long()
+    in_beam = ok & (theta_true > lo) & (theta_true <= hi)
+    expected = torch.where(in_beam, k_first + 1, 16)
+    grid = _Counting(surface)
+    th_grid, v_grid, _ = find_intersections(
+        grid, sonar, R, r, side, BEAM, tol_m=1e-4, scan_max_slope=math.inf
+    )
+    assert grid.heights == int(expected.sum())
+    # slope-bounded steps (default scan_max_slope = 1): same crossings, far fewer heights;
+    # the Newton refinement costs about the same
+    march = _Counting(surface)
+    th, valid, _ = find_intersections(march, sonar, R, r, side, BEAM, tol_m=1e-4)
+    assert torch.equal(valid, v_grid)
+    assert _points_mm(sonar, R, r, side, th, th_grid)[valid].max() < 0.5
+    assert march.heights < 0.45 * grid.heights
+    assert march.heights < 4.0 * sonar.shape[0]
+    assert march.gradients < 1.15 * grid.gradients
+    # the secant refinement evaluates no gradient at all
+    secant = _Counting(surface)
+    find_intersections(secant, sonar, R, r, side, BEAM, "secant", tol_m=1e-4)
+    assert secant.gradients == 0
+    assert secant.heights - march.heights < 3.0 * int(valid.sum())
 
 
 @pytest.mark.slow

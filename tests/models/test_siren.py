@@ -1,4 +1,5 @@
-"""Siren: init, frame, explicit input gradient (vs autograd and finite differences)."""
+"""Siren: init, frame, explicit input gradient (vs autograd and finite differences), blocks,
+the fused sine/cosine node and the training precision."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
-from sss2bathy.models.siren import Siren
+from sss2bathy.models.siren import CPU_CHUNK, PRECISIONS, Siren, _SinCos
 
 BOUNDS = (100.0, -50.0, 300.0, 150.0)
 Z_RANGE = (-25.0, -9.0)
@@ -132,3 +133,243 @@ def test_state_dict_rebuilds_the_model():
     assert torch.equal(s.height(xy), s2.height(xy))
     with pytest.raises(ValueError, match="state"):
         Siren.from_state_dict({"x": torch.zeros(1)})
+
+
+# ------------------------------------------------------------ blocks, fused nodes, precision
+def _param_grads(s: Siren, loss: torch.Tensor) -> list[torch.Tensor]:
+    return list(torch.autograd.grad(loss, list(s.parameters())))
+
+
+def test_blocks_give_the_same_values_and_parameter_gradients():
+    xy = _xy(300)
+    whole, blocked = _siren(chunk=1000), _siren(chunk=64)  # 5 blocks, the last of 44 points
+    z1, g1 = whole.height_and_gradient(xy)
+    z2, g2 = blocked.height_and_gradient(xy)
+    torch.testing.assert_close(z2, z1, rtol=0, atol=1e-12)
+    torch.testing.assert_close(g2, g1, rtol=0, atol=1e-14)
+    loss1 = (g1**2).sum() + z1.sum()
+    loss2 = (g2**2).sum() + z2.sum()
+    for a, b in zip(_param_grads(whole, loss1), _param_grads(blocked, loss2), strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+    assert torch.equal(blocked.height(xy), torch.cat([blocked.height(c) for c in xy.split(64)]))
+    # default: cache-sized blocks on CPU, everything at once elsewhere
+    assert _siren().chunk_for(torch.device("cpu")) == CPU_CHUNK
+    assert _siren().chunk_for(torch.device("cuda")) is None
+    assert _siren(chunk=77).chunk_for(torch.device("cuda")) == 77
+
+
+def test_sin_cos_node_backward_is_exact():
+    pre = torch.randn(40, 7, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda p: _SinCos.apply(p), (pre,))
+    s, c = _SinCos.apply(pre)
+    (g_sin,) = torch.autograd.grad(s.sum(), pre)  # the cosine output unused
+    torch.testing.assert_close(g_sin, torch.cos(pre).detach())
+    s, c = _SinCos.apply(pre)
+    (g_cos,) = torch.autograd.grad((3 * c).sum(), pre)  # the sine output unused
+    torch.testing.assert_close(g_cos, -3 * torch.sin(pre).detach())
+
+
+def test_invalid_precision_and_chunk_are_rejected():
+    with pytest.raises(ValueError, match="precision"):
+        Siren(precision="fp16")
+    with pytest.raises(ValueError, match="chunk"):
+        Siren(chunk=0)
+    assert sorted(PRECISIONS) == ["bf16", "fp32"]
+
+
+def _paper_siren(precision: str) -> Siren:
+    torch.manual_seed(0)
+    bounds, relief = (-175.0, -150.0, 175.0, 150.0), 50.0  # slopes ~0.1, as in the benchmark
+    return Siren(128, 5, 30.0, bounds, (-18.0 - relief, -18.0 + relief), precision=precision)
+
+
+def test_bf16_gradient_pass_error_at_paper_size():
+    """bf16 hidden layers of the training gradient pass: ~1 % on slopes, < 5e-3 on n_lat."""
+    from sss2bathy.eval.bench import MatmulRecorder
+
+    lo, hi = torch.tensor([-175.0, -150.0]), torch.tensor([175.0, 150.0])
+    xy = lo + (hi - lo) * torch.rand(4096, 2, generator=torch.Generator().manual_seed(3))
+    ref, low = _paper_siren("fp32"), _paper_siren("bf16")
+    z32, g32 = ref.height_and_gradient(xy)
+    with MatmulRecorder() as rec:
+        z16, g16 = low.height_and_gradient(xy)
+    dtypes = {lay[2] for sig in rec.calls for lay in sig[1]}
+    assert dtypes == {"float32", "bfloat16"}  # hidden H x H in bf16; input/output layers fp32
+    assert z16.dtype == g16.dtype == torch.float32 and g16.requires_grad
+    n = xy.shape[0]
+    R = attitude_to_rotation(
+        torch.rand(n, dtype=torch.float64) * 6.28, torch.zeros(n).double(), torch.zeros(n).double()
+    ).float()
+    side = torch.arange(n) % 2
+    n32, _ = head_plane_normal_from_gradient(g32[:, 0], g32[:, 1], R, side)
+    n16, _ = head_plane_normal_from_gradient(g16[:, 0], g16[:, 1], R, side)
+    err = (n16 - n32).detach().abs()
+    assert err.quantile(0.99) < 5e-3 and err.median() < 1.5e-3
+    rel = ((g16 - g32).norm(dim=1) / g32.norm(dim=1)).detach()
+    assert 1e-4 < rel.median() < 0.03  # bf16 is really used, and close
+    # this pass's heights carry bf16 rounding (about 1e-3 of the range, here +-50 m)
+    torch.testing.assert_close(z16, z32, rtol=0, atol=0.1)
+    # heights and passes without a graph ignore the precision: bit-identical to fp32
+    assert torch.equal(low.height(xy), ref.height(xy))
+    with torch.no_grad():
+        a, b = low.height_and_gradient(xy), ref.height_and_gradient(xy)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_an_enclosing_autocast_acts_like_bf16_and_never_reaches_no_grad_passes():
+    xy = _xy(500).float()
+    ref, low = _paper_siren("fp32"), _paper_siren("bf16")
+    ref.set_frame(BOUNDS, Z_RANGE)
+    low.set_frame(BOUNDS, Z_RANGE)
+    with torch.no_grad():
+        z_nograd, g_nograd = ref.height_and_gradient(xy)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        z_auto, g_auto = ref.height_and_gradient(xy)
+        h_auto = ref.height(xy)
+        with torch.no_grad():
+            z_ng_auto, g_ng_auto = ref.height_and_gradient(xy)
+    z_low, g_low = low.height_and_gradient(xy)
+    assert torch.equal(g_auto, g_low) and torch.equal(z_auto, z_low)
+    assert torch.equal(h_auto, ref.height(xy))
+    assert torch.equal(g_ng_auto, g_nograd) and torch.equal(z_ng_auto, z_nograd)
+
+
+# ------------------------------------------------------------------------ input encodings
+def _encoding(kind: str):
+    from sss2bathy.models.encoding import FourierFeatures, HashGridEncoding
+
+    if kind == "fourier":
+        return FourierFeatures(n_freq=16, sigma=3.0, learnable=True)
+    # level 0 dense ((4+1)^2 <= 256), finer levels hashed; tables large enough to matter
+    return HashGridEncoding(
+        n_levels=4, log2_table_size=8, base_resolution=4, max_resolution=32, init_scale=0.5
+    )
+
+
+ENCODINGS = ["fourier", "hash"]
+
+
+@pytest.mark.parametrize("kind", ENCODINGS)
+def test_encoded_gradient_equals_autograd_and_trains_the_encoding(kind):
+    torch.manual_seed(0)
+    s = _siren(n_layers=3, hidden=16, chunk=16, encoding=_encoding(kind))
+    assert s.sine_layers[0].in_features == s.encoding.out_dim
+    xy = _xy(64)  # four blocks
+    xr = xy.clone().requires_grad_(True)
+    z_ref = s.height(xr)
+    (auto,) = torch.autograd.grad(z_ref.sum(), xr, create_graph=True)
+    z, grad = s.height_and_gradient(xy)
+    assert torch.equal(z, z_ref)
+    torch.testing.assert_close(grad, auto, rtol=1e-10, atol=1e-12)
+    assert grad.abs().max() > 1e-3
+    h = 1e-4  # central differences in world metres
+    with torch.no_grad():
+        ex, ey = torch.tensor([h, 0.0]).double(), torch.tensor([0.0, h]).double()
+        fd = torch.stack(
+            [
+                (s.height(xy + ex) - s.height(xy - ex)) / (2 * h),
+                (s.height(xy + ey) - s.height(xy - ey)) / (2 * h),
+            ],
+            dim=1,
+        )
+    torch.testing.assert_close(grad.detach(), fd, rtol=0, atol=1e-6)
+    # parameter gradients of a gradient loss (encoding included): explicit == double backward
+    names = [k for k, _ in s.named_parameters()]
+    assert any(k.startswith("encoding.") for k in names)
+    g1 = _param_grads(s, (grad**2).sum() + z.sum())
+    g2 = _param_grads(s, (auto**2).sum() + z_ref.sum())
+    for name, a, b in zip(names, g1, g2, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11, msg=name)
+    enc_grad = g1[names.index(next(k for k in names if k.startswith("encoding.")))]
+    assert enc_grad.abs().sum() > 0
+    # the in-place pass without a graph (intersection finder, map) computes the same
+    with torch.no_grad():
+        z2, grad2 = s.height_and_gradient(xy)
+    assert torch.equal(z2, z.detach()) and torch.equal(grad2, grad.detach())
+
+
+@pytest.mark.parametrize("kind", ENCODINGS)
+def test_encoded_bf16_training_pass_stays_close(kind):
+    torch.manual_seed(0)
+    ref = Siren(32, 4, 30.0, BOUNDS, Z_RANGE, encoding=_encoding(kind))
+    low = Siren(32, 4, 30.0, BOUNDS, Z_RANGE, precision="bf16", encoding=_encoding(kind))
+    low.load_state_dict(ref.state_dict())
+    xy = _xy(512).float()
+    g32 = ref.height_and_gradient(xy)[1]
+    g16 = low.height_and_gradient(xy)[1]  # hidden layers in bf16, encoding + layer 1 fp32
+    rel = ((g16 - g32).norm() / g32.norm()).item()
+    assert 1e-5 < rel < 0.05
+    with torch.no_grad():  # no graph: always fp32, bit-identical
+        assert torch.equal(low.height_and_gradient(xy)[1], ref.height_and_gradient(xy)[1])
+    assert torch.equal(low.height(xy), ref.height(xy))
+
+
+@pytest.mark.parametrize("kind", ENCODINGS)
+def test_encoded_init_and_state_dict_rebuild(kind):
+    torch.manual_seed(0)
+    s = Siren(hidden=64, n_layers=3, bounds=BOUNDS, z_range=Z_RANGE, encoding=_encoding(kind))
+    d = s.encoding.out_dim
+    bound = math.sqrt(6.0 / d) / 30.0  # the hidden-layer init for the encoded first layer
+    w = s.sine_layers[0].weight
+    assert 0.9 * bound < w.abs().max().item() <= bound + 1e-7
+    state = {f"siren.{k}": v for k, v in s.state_dict().items()}
+    r = Siren.from_state_dict(state, prefix="siren.")
+    assert type(r.encoding) is type(s.encoding) and r.encoding.out_dim == d
+    xy = _xy(32).float()
+    for a, b in zip(r.height_and_gradient(xy), s.height_and_gradient(xy), strict=True):
+        assert torch.equal(a, b)
+    plain = Siren(hidden=8, n_layers=3)
+    assert plain.encoding is None
+    assert not any(k.startswith("encoding") for k in plain.state_dict())
+    assert [k for k, _ in plain.named_parameters()] == [
+        "sine_layers.0.weight",
+        "sine_layers.0.bias",
+        "sine_layers.1.weight",
+        "sine_layers.1.bias",
+        "out_layer.weight",
+        "out_layer.bias",
+    ]
+    assert Siren.from_state_dict(plain.state_dict()).encoding is None
+
+
+@pytest.mark.parametrize("kind", [None, *ENCODINGS])
+def test_empty_input_gives_empty_outputs(kind):
+    s = _siren(encoding=None if kind is None else _encoding(kind))
+    xy = torch.zeros(0, 2, dtype=torch.float64)
+    z, grad = s.height_and_gradient(xy)
+    assert z.shape == (0,) and grad.shape == (0, 2) and s.height(xy).shape == (0,)
+    with torch.no_grad():
+        assert s.height_and_gradient(xy)[1].shape == (0, 2)
+
+
+def test_encoding_argument_is_validated():
+    from sss2bathy.models.encoding import FourierFeatures
+
+    with pytest.raises(ValueError, match="encoding: expected None or an Encoding with in_dim 2"):
+        Siren(encoding=FourierFeatures(in_dim=3))
+    with pytest.raises(ValueError, match="encoding: .*found Linear"):
+        Siren(encoding=torch.nn.Linear(2, 4))
+
+
+def test_model_config_instantiates_an_encoded_siren():
+    """conf/model/siren_normals.yaml's ``siren`` block: ``encoding: null`` by default, and a
+    ``_target_`` override builds the encoding through Hydra's recursive instantiation."""
+    from pathlib import Path
+
+    import hydra
+    from omegaconf import OmegaConf
+
+    path = Path(__file__).resolve().parents[2] / "conf" / "model" / "siren_normals.yaml"
+    block = OmegaConf.load(path).siren
+    assert block.encoding is None
+    block.omega0 = 30.0  # ${scale.siren.omega0} outside a composed config
+    plain = hydra.utils.instantiate(block, _recursive_=True, _convert_="partial")()
+    assert plain.encoding is None and plain.sine_layers[0].in_features == 2
+    block.encoding = {
+        "_target_": "sss2bathy.models.encoding.FourierFeatures",
+        "n_freq": 16,
+        "sigma": 4.0,
+    }
+    enc = hydra.utils.instantiate(block, _recursive_=True, _convert_="partial")()
+    assert type(enc.encoding).__name__ == "FourierFeatures"
+    assert enc.sine_layers[0].in_features == 2 + 2 * 16

@@ -113,7 +113,7 @@ def test_arc_geometry_normals_are_the_sirens_at_the_crossings():
     r = (geo.points - geo.sonar).norm(dim=-1)
     assert torch.allclose(r, geo.range_m, atol=1e-4)  # on the arc
     with pytest.raises(ValueError, match="finder"):
-        arc_geometry(siren, batch, use, (0.0, 1.0), {"solver": "secant"})
+        arc_geometry(siren, batch, use, (0.0, 1.0), {"solver": "simplex"})
 
 
 # ------------------------------------------------------------------ Hydra + Lightning
@@ -186,7 +186,7 @@ def test_cnn_experiment_config(tmp_path, tiny_survey):
     assert cfg.data.normals == "cnn" and cfg.data.cnn_checkpoint == "latest"
     assert cfg.data.cnn_runs_dir == os.path.join(str(tmp_path / "outputs"), "runs", "cnn")
     model = hydra.utils.instantiate(cfg.model)
-    assert isinstance(model, SirenModule) and model.finder["solver"] == "newton"
+    assert isinstance(model, SirenModule) and model.finder["solver"] == "secant"
     dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
     with pytest.raises(ValueError, match="cnn_checkpoint"):
         dm.setup("fit")  # no CNN trained under this output dir
