@@ -14,7 +14,7 @@ export SSS2BATHY_ROOT := $(CURDIR)
 export HYDRA_FULL_ERROR := 1
 
 .PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
-	siren-cnn-n2d siren-lambert siren-lambert-all d2 report paper sweep-example bench tb clean
+	siren-cnn-n2d siren-lambert siren-lambert-all d2 report paper sweep-example bench schedule-study tb clean
 
 help: ## Show this help
 	@grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
@@ -90,6 +90,17 @@ sweep-example: install ## A small Hydra multirun sweep (w_H x seed) on SIREN-GT-
 
 bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
 	$(BIN)/python -m sss2bathy.cli.bench $(ARGS)
+
+STUDY := outputs/study/$(SCALE)
+STUDY_TRAIN := $(BIN)/sss2bathy-train experiment=siren_cnn_n2d scale=$(SCALE) model.log_images=false
+schedule-study: install ## SIREN-CNN-N2d: paper schedule vs fast schedule, map MAE over time (paper run: hours on a CPU)
+	@ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1 || \
+		$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
+	$(STUDY_TRAIN) siren_schedule=fast scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/fast $(ARGS)
+	$(STUDY_TRAIN) scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/scale_default $(ARGS)
+	$(STUDY_TRAIN) siren_schedule=paper scale.siren.eval_every_n_epochs=25 hydra.run.dir=$(STUDY)/paper $(ARGS)
+	$(BIN)/python -m sss2bathy.eval.schedule_study --reference paper --reference-epochs 1500 \
+		--run paper=$(STUDY)/paper --run fast=$(STUDY)/fast --run $(SCALE)=$(STUDY)/scale_default --out $(STUDY)
 
 tb: install ## TensorBoard on outputs/
 	$(BIN)/tensorboard --logdir outputs/ --bind_all
