@@ -145,6 +145,7 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("model.direct_fit_points", positive_int, "a positive integer"),
     ("model.region_radius_m", positive, "a positive number (m) or null"),
     ("model.sensor_lr", positive, "a positive learning rate or null"),
+    ("model.encoding_lr", positive, "a positive learning rate or null"),
     ("model.sensor.n_beam_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
     ("model.sensor.n_gain_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
     ("model.sensor.reflectivity", *_enum("constant", "field")),

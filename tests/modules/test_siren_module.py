@@ -190,3 +190,24 @@ def test_cnn_experiment_config(tmp_path, tiny_survey):
     dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
     with pytest.raises(ValueError, match="cnn_checkpoint"):
         dm.setup("fit")  # no CNN trained under this output dir
+
+
+def test_encoding_parameters_get_their_own_learning_rate():
+    from functools import partial
+
+    from sss2bathy.models.encoding import FourierFeatures
+
+    enc = FourierFeatures(n_freq=4, sigma=1.0, learnable=True)
+    siren = Siren(hidden=8, n_layers=3, omega0=5.0, encoding=enc)
+    module = SirenModule(
+        siren, sensor=None, optimizer=partial(torch.optim.Adam, lr=1e-3), encoding_lr=1e-2
+    )
+    groups = module.configure_optimizers()["optimizer"].param_groups
+    assert [g["lr"] for g in groups] == [1e-3, 1e-2]
+    enc_ids = {id(p) for p in enc.parameters()}
+    assert {id(p) for p in groups[1]["params"]} == enc_ids
+    assert not enc_ids & {id(p) for p in groups[0]["params"]}
+    n_all = sum(p.numel() for p in siren.parameters())
+    assert sum(p.numel() for g in groups for p in g["params"]) == n_all
+    with pytest.raises(ValueError, match="encoding_lr: expected a positive learning rate"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, encoding_lr=0.0)
