@@ -141,7 +141,7 @@ def arc_geometry(
             tol_m=finder["tol_m"],
             gd_step=finder["gd_step"],
             n_scan=finder["n_scan"],
-        scan_max_slope=finder["scan_max_slope"],
+            scan_max_slope=finder["scan_max_slope"],
             warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
             chunk=finder["chunk"],
         )
