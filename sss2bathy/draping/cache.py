@@ -1,6 +1,7 @@
 """Draping a whole survey, cached under ``<survey_dir>/draped/<key>/<line>.npz``.
 
-The key is a stable hash of everything the result depends on: the draping config
+The key is a stable hash of everything the result depends on: the draping algorithm's
+version (``DRAPE_ALGORITHM_VERSION``), the draping config
 (:meth:`DrapeConfig.cache_dict`), the surface (the MBES grid's heights and geometry, or
 the mesh file's SHA-256) and every line's draping inputs (times, positions, rotations,
 altitudes, slant ranges and sensor). Hashing the inputs rather than the line files keeps
@@ -22,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from sss2bathy.draping.config import DrapeConfig
-from sss2bathy.draping.drape import drape_line
+from sss2bathy.draping.drape import DRAPE_ALGORITHM_VERSION, drape_line
 from sss2bathy.draping.draped import DRAPED_FORMAT_VERSION, DrapedLine
 from sss2bathy.draping.surface import DrapeSurface
 from sss2bathy.survey import BathyGrid, SidescanLine, Survey, SurveyFormatError
@@ -116,6 +117,7 @@ def _cache_key(cfg: DrapeConfig, surface_hash: str, line_hashes: dict[str, str])
     return stable_hash(
         {
             "format": DRAPED_FORMAT_VERSION,
+            "algorithm": DRAPE_ALGORITHM_VERSION,
             "config": cfg.cache_dict(),
             "surface": surface_hash,
             "lines": line_hashes,

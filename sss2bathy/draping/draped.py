@@ -70,12 +70,11 @@ class DrapedLine:
         if np.any(m & ~np.uint8(_ALL_BITS)):
             raise SurveyFormatError(file, "mask", f"bits within {_ALL_BITS:#x}", int(m.max()))
         valid = m == MASK_VALID
-        n_valid = self.n_lat[valid]
-        if not np.all(np.isfinite(n_valid)) or np.any(np.abs(n_valid) > 1.0 + 1e-5):
+        if np.any(valid & ~(np.abs(self.n_lat) <= 1.0 + 1e-5)):  # NaN fails the test
             raise SurveyFormatError(
                 file, "n_lat", "finite values in [-1, 1] at valid bins", "other"
             )
-        if not np.all(np.isfinite(self.points[valid])):
+        if np.any(valid & ~np.isfinite(self.points).all(axis=-1)):
             raise SurveyFormatError(file, "points", "finite points at valid bins", "NaN/inf")
 
     def save(self, path: str | Path) -> None:

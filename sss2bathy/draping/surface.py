@@ -13,13 +13,59 @@ from sss2bathy.survey import BathyGrid
 log = logging.getLogger(__name__)
 
 
+class _EmbreeScene:
+    """An embreex scene of the mesh in a shifted and scaled float32 frame.
+
+    Embree works in float32: vertices and ray origins are shifted by the mesh's lower
+    bounding-box corner and scaled to a box of about 100 units (as trimesh does), so
+    survey-sized coordinates keep their precision. Built here rather than through
+    trimesh's wrapper, which converts, normalises and rescales every ray batch in float64
+    on each call; callers pass float32 rays and get face indices (and, on request,
+    embree's float32 hit distances).
+    """
+
+    def __init__(self, mesh: Any) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        verts = np.asarray(mesh.vertices, dtype=np.float64)
+        self.origin = verts.min(axis=0)
+        extent = float(np.linalg.norm(verts.max(axis=0) - self.origin))
+        self.scale = 100.0 / extent if extent > 0 else 1.0
+        self.scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(
+            scene=self.scene,
+            vertices=((verts - self.origin) * self.scale).astype(np.float32),
+            indices=np.asarray(mesh.faces, dtype=np.int32),
+        )
+
+    def origins(self, origins: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` float32 ray origins in the scene's frame from world ``(N, 3)``."""
+        return ((np.asarray(origins, dtype=np.float64) - self.origin) * self.scale).astype(
+            np.float32
+        )
+
+    def run(self, origins32: np.ndarray, directions32: np.ndarray, distances: bool = False) -> Any:
+        """First-hit face index ``(N,) int32`` (-1 = miss) of rays already in the frame.
+
+        With ``distances``: also the float32 hit distance in world units of the direction's
+        length (NaN = miss), from embree's ``tfar`` (float32 scene precision).
+        """
+        if not distances:
+            return self.scene.run(origins32, directions32)
+        res = self.scene.run(origins32, directions32, output=1)
+        tri = res["primID"]
+        dist = res["tfar"]
+        dist *= np.float32(1.0 / self.scale)
+        dist[tri < 0] = np.nan
+        return tri, dist
+
+
 def _make_intersector(mesh: Any, engine: str) -> tuple[Any, str]:
-    """``(intersector, engine name)``: embreex through trimesh, else trimesh's own."""
+    """``(intersector, engine name)``: an embreex scene, else trimesh's own intersector."""
     if engine in ("auto", "embree"):
         try:
-            from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-            return RayMeshIntersector(mesh), "embree"
+            return _EmbreeScene(mesh), "embree"
         except ImportError as exc:
             if engine == "embree":
                 raise ImportError(
@@ -66,14 +112,19 @@ class DrapeSurface:
         # Degenerate faces keep a zero normal: hits on them are treated as misses.
         self.face_normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
         self.face_offsets = np.einsum("fk,fk->f", self.face_normals, tris[:, 0])
+        # (F + 1, 4) planes [n, offset]; the last row is NaN so index -1 (a miss) gives NaN.
+        self.face_planes = np.concatenate(
+            [
+                np.concatenate([self.face_normals, self.face_offsets[:, None]], axis=1),
+                np.full((1, 4), np.nan),
+            ]
+        )
         self.intersector, self.engine = _make_intersector(mesh, engine)
-        self._grad: tuple[BathyGrid, BathyGrid] | None = None
+        # For an MBES grid: dz/dx and dz/dy stacked (ny, nx, 2), float32 like BathyGrid.
+        self._grad: np.ndarray | None = None
         if grid is not None:
             gx, gy = grid.gradient()
-            self._grad = (
-                BathyGrid(gx, grid.x0, grid.y0, grid.cell_size),
-                BathyGrid(gy, grid.x0, grid.y0, grid.cell_size),
-            )
+            self._grad = np.ascontiguousarray(np.stack([gx, gy], axis=-1), dtype=np.float32)
 
     @classmethod
     def from_grid(cls, grid: BathyGrid, engine: str = "auto") -> DrapeSurface:
@@ -107,6 +158,70 @@ class DrapeSurface:
             raise ValueError(f"mesh_path: could not read {path} as a mesh ({exc})") from exc
         return cls.from_mesh(mesh, engine=engine)
 
+    def cast(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        repeat: int = 1,
+        distances: bool = False,
+    ) -> Any:
+        """First face each ray hits: the bare intersector call (embree in float32).
+
+        Args:
+            origins: ``(K, 3)`` ray origins (m, world, float64).
+            directions: ``(K * repeat, 3)`` ray directions (float32 is passed to embree as
+                is); rays ``k * repeat ... (k + 1) * repeat - 1`` start at ``origins[k]``.
+            repeat: rays per origin (a fan of rays from one point).
+            distances: also return the hit distances.
+
+        Returns:
+            ``(K * repeat,)`` face index, -1 where the ray misses; with ``distances`` also
+            the distance to the hit in units of the direction's length (m for unit
+            directions; NaN = miss). Embree's distances are float32 and carry the scene's
+            float32 precision (about 1e-7 of the mesh extent): exact hits come from
+            :meth:`first_hits` or from the face planes.
+        """
+        origins = np.asarray(origins, dtype=np.float64)
+        if len(directions) != len(origins) * repeat:
+            raise ValueError(
+                f"directions: expected {len(origins) * repeat} rays "
+                f"({len(origins)} origins x repeat {repeat}), found {len(directions)}"
+            )
+        if len(directions) == 0:
+            tri = np.zeros(0, np.int64)
+            return (tri, np.zeros(0, np.float32)) if distances else tri
+        if isinstance(self.intersector, _EmbreeScene):
+            o32 = self.intersector.origins(origins)
+            if repeat > 1:
+                o32 = np.repeat(o32, repeat, axis=0)
+            d32 = np.ascontiguousarray(directions, dtype=np.float32)
+            return self.intersector.run(o32, d32, distances)
+        if repeat > 1:
+            origins = np.repeat(origins, repeat, axis=0)
+        directions = np.asarray(directions, np.float64)
+        tri = np.asarray(self.intersector.intersects_first(origins, directions), np.int64)
+        if not distances:
+            return tri
+        return tri, self._plane_distances(tri, origins, directions)
+
+    def _plane_distances(
+        self, tri: np.ndarray, origins: np.ndarray, directions: np.ndarray
+    ) -> np.ndarray:
+        """Float64 distance along each ray to the plane of its face ``tri`` (NaN = miss).
+
+        Updates ``tri`` in place to -1 where the distance is not usable (ray parallel
+        to the face, face behind the origin, degenerate face).
+        """
+        plane = np.take(self.face_planes, tri, axis=0)  # tri -1 -> the NaN row
+        denom = np.einsum("nk,nk->n", plane[:, :3], directions)
+        num = plane[:, 3] - np.einsum("nk,nk->n", plane[:, :3], origins)
+        dist = np.full(len(tri), np.nan)
+        with np.errstate(invalid="ignore"):
+            np.divide(num, denom, out=dist, where=np.abs(denom) > 1e-12)
+            dist[dist < 0] = np.nan
+        tri[np.isnan(dist)] = -1
+        return dist
+
     def first_hits(
         self, origins: np.ndarray, directions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -120,20 +235,47 @@ class DrapeSurface:
             ``tri (N,) int64`` face index (-1 = miss) and ``dist (N,) float64`` distance
             along the ray (NaN = miss), computed in float64 from the face's plane.
         """
+        origins = np.asarray(origins, dtype=np.float64)
+        directions = np.asarray(directions, dtype=np.float64)
         if len(origins) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float64)
-        tri = np.asarray(self.intersector.intersects_first(origins, directions), dtype=np.int64)
-        hit = tri >= 0
-        dist = np.full(len(tri), np.nan)
-        n = self.face_normals[tri[hit]]
-        denom = np.einsum("nk,nk->n", n, directions[hit])
-        num = self.face_offsets[tri[hit]] - np.einsum("nk,nk->n", n, origins[hit])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = num / denom
-        ok = np.isfinite(t) & (t >= 0) & (np.abs(denom) > 1e-12)
-        dist[hit] = np.where(ok, t, np.nan)
-        tri[hit] = np.where(ok, tri[hit], -1)
+        tri = np.asarray(self.cast(origins, directions), dtype=np.int64)
+        dist = self._plane_distances(tri, origins, directions)
         return tri, dist
+
+    def grid_gradient_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` bilinear ``(dz/dx, dz/dy)`` of the grid at world ``(x, y)``.
+
+        ``BathyGrid.sample`` of each gradient field (to rounding; NaN outside the grid),
+        with one index and weight computation for both. Grid surfaces only.
+        """
+        if self._grad is None or self.grid is None:
+            raise ValueError("surface: expected a surface built from a BathyGrid, found a mesh")
+        g, grid = self._grad, self.grid
+        fx = (np.asarray(x, dtype=np.float64) - grid.x0) / grid.cell_size
+        fy = (np.asarray(y, dtype=np.float64) - grid.y0) / grid.cell_size
+        ny, nx = g.shape[:2]
+        inside = (fx >= 0) & (fx <= nx - 1) & (fy >= 0) & (fy <= ny - 1)
+        with np.errstate(invalid="ignore"):
+            cx = np.clip(np.floor(fx), 0, nx - 2)
+            cy = np.clip(np.floor(fy), 0, ny - 2)
+        cx[~inside], cy[~inside] = 0.0, 0.0  # NaN coordinates
+        tx, ty = (fx - cx)[:, None], (fy - cy)[:, None]
+        i00 = cy.astype(np.int64) * nx + cx.astype(np.int64)
+        corners = np.stack([i00, i00 + 1, i00 + nx, i00 + nx + 1])  # (4, N)
+        flat = g.reshape(-1, 2).view(np.int64).reshape(-1)  # (dz/dx, dz/dy) as one item
+        h = np.take(flat, corners).view(np.float32).reshape(4, -1, 2).astype(np.float64)
+        z = h[1] - h[0]
+        z *= tx
+        z += h[0]  # along x on the lower row ...
+        upper = h[3] - h[2]
+        upper *= tx
+        upper += h[2]  # ... and the upper row
+        upper -= z
+        upper *= ty
+        z += upper
+        z[~inside] = np.nan
+        return z
 
     def normals_at(self, points: np.ndarray, tri: np.ndarray, sonar: np.ndarray) -> np.ndarray:
         """World normals ``(N, 3)`` at surface points (NaN where unknown).
@@ -143,9 +285,8 @@ class DrapeSurface:
         oriented towards ``sonar`` (the hit face is seen from the sonar).
         """
         if self._grad is not None:
-            gx = self._grad[0].sample(points[:, 0], points[:, 1])
-            gy = self._grad[1].sample(points[:, 0], points[:, 1])
-            return np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+            g = self.grid_gradient_at(points[:, 0], points[:, 1])
+            return np.stack([-g[:, 0], -g[:, 1], np.ones(len(g))], axis=-1)
         n = self.face_normals[tri].copy()
         facing = np.einsum("nk,nk->n", n, sonar - points)
         n[facing < 0] *= -1.0
