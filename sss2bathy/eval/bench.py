@@ -639,6 +639,10 @@ def _time_in_turns(
     changes during the measurement weighs on all of them alike (timing one after the other
     would give the first ones a different machine than the last).
     """
+    if int(warmup) < 0:
+        raise ValueError(f"warmup: expected >= 0, found {warmup}")
+    if not repeats or min(int(n) for n in repeats.values()) < 1:
+        raise ValueError(f"repeats: expected >= 1 per function, found {dict(repeats)}")
     for _ in range(int(warmup)):
         for fn in fns.values():
             fn()
@@ -1043,25 +1047,6 @@ def bench_sim(
 
 
 # ----------------------------------------------------------------------------- draping
-def _interleaved_times(
-    fns: Mapping[str, Callable[[], Any]], warmup: int, repeats: int
-) -> dict[str, list[float]]:
-    """Wall times (s) of each function, run in turn ``repeats`` times after ``warmup``
-    rounds: interleaving makes changes of machine load hit every function alike."""
-    if int(warmup) < 0:
-        raise ValueError(f"warmup: expected >= 0, found {warmup}")
-    if int(repeats) < 1:
-        raise ValueError(f"repeats: expected >= 1, found {repeats}")
-    times: dict[str, list[float]] = {name: [] for name in fns}
-    for i in range(int(warmup) + int(repeats)):
-        for name, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            if i >= int(warmup):
-                times[name].append(time.perf_counter() - t0)
-    return times
-
-
 def bench_drape(
     *,
     n_pings: int = 1000,
@@ -1108,7 +1093,7 @@ def bench_drape(
     wrapped = trimesh_cast(surface, batches)
     if wrapped is not None:
         fns["trimesh"] = wrapped
-    times = _interleaved_times(fns, warmup, repeats)
+    times, _ = _time_in_turns(fns, dict.fromkeys(fns, repeats), warmup, torch.device("cpu"))
     t_drape, t_raw = times["drape"], times["raw"]
     figures = [
         figure("draping rays/s", "rays/s", _rates(n_rays, t_drape)),
