@@ -316,7 +316,7 @@ class SirenModule(pl.LightningModule):
         self.theta_cache.copy_(cache)
 
     def configure_optimizers(self) -> dict[str, Any]:
-        encoding = getattr(self.siren, "encoding", None)
+        encoding = self.siren.encoding
         enc_params = list(encoding.parameters()) if encoding is not None else []
         enc_ids = {id(p) for p in enc_params}
         groups: list[dict[str, Any]] = [
@@ -442,11 +442,9 @@ class SirenModule(pl.LightningModule):
             "siren/n_layers": self.siren.n_layers,
             "siren/omega0": self.siren.omega0,
             "siren/precision": self.siren.precision,
-            "siren/encoding": (
-                type(self.siren.encoding).__name__
-                if getattr(self.siren, "encoding", None) is not None
-                else "none"
-            ),
+            "siren/encoding": type(self.siren.encoding).__name__
+            if self.siren.encoding is not None
+            else "none",
             "sensor": type(self.sensor).__name__ if self.sensor is not None else "none",
             "w_height": self.w_height,
             "direct_fit": self.direct_fit,
