@@ -5,14 +5,23 @@ from sidescan" (the paper's reference nils2021) predict each bin's intensity fro
 bathymetry and learn the sensor's unknowns jointly with it. For a bin whose arc crosses
 the seafloor at ``p`` seen from the sonar ``s``:
 
-    I_pred = K * G(r) * B(theta) * rho(x, y) * M(incidence),    M = max(cos(incidence), 0)^q
+    I_pred = K * G(r) * B(theta) * rho(x, y) * M(incidence),    M = max(cos(incidence), 0)^e
 
 * ``K``: global scale (a log-parameter);
 * ``G(r)``: range gain (the time-varying gain), piecewise linear over slant range;
 * ``B(theta)``: beam pattern over the depression angle, piecewise linear over the beam;
 * ``rho``: seabed reflectivity, 1 by default (folded into ``K``) or a learned field;
 * ``M``: the Lambertian term from the SIREN normal ``[-dz/dx, -dz/dy, 1]`` at ``p`` and the
-  direction ``s - p``; ``q = 2`` as in Bore's auvlib (``q = 1``: Lambert's cosine law).
+  direction ``s - p``, with the exponent ``e`` that fits what the sidescan stores.
+
+**The exponent.** ``q`` is Lambert's exponent *in power*: the received power goes as
+``cos(incidence)^q`` (``q = 2``: Lambert's law for backscatter, ``sigma0 = mu cos^2 i``, the
+simulator's diffuse term with its materials' exponents 1.15-3.0; ``q = 1``: the plain
+cosine law). A sidescan stores **amplitude**: the simulator's receiver records
+``gain * sqrt(TVG * power)`` (:func:`sss2bathy.sim.sonar.receive`) and XTF sidescan samples
+are the receiver's envelope amplitudes. With ``intensity_kind="amplitude"`` the model
+therefore applies ``e = q / 2`` (:func:`lambert_exponent`), with ``"power"`` ``e = q``.
+``G``, ``B``, ``rho`` and ``K`` are free, so they take whichever domain the data are in.
 
 ``K``, ``G`` and ``B`` are free log-values (``G``, ``B`` on their knots). Only their
 product is observable; the reported curves are normalised to geometric mean 1 over the
@@ -48,6 +57,25 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 REFLECTIVITY_KINDS = ("constant", "field")
+INTENSITY_KINDS = ("amplitude", "power")
+
+
+def lambert_exponent(q: float, intensity_kind: str = "amplitude") -> float:
+    """The exponent of ``cos(incidence)`` to apply to the stored intensity.
+
+    ``q`` is Lambert's exponent in power (``P ~ cos^q``); an amplitude is ``sqrt(P)``, so
+    it goes as ``cos^(q/2)``.
+
+    >>> lambert_exponent(2.0, "amplitude"), lambert_exponent(2.0, "power")
+    (1.0, 2.0)
+    """
+    if intensity_kind not in INTENSITY_KINDS:
+        raise ValueError(
+            f"intensity_kind: expected one of {INTENSITY_KINDS}, found {intensity_kind!r}"
+        )
+    if not q > 0.0:
+        raise ValueError(f"q: expected a Lambertian exponent in power > 0, found {q}")
+    return float(q) / 2.0 if intensity_kind == "amplitude" else float(q)
 
 
 def _check_points(name: str, value: torch.Tensor, n: int | None = None) -> None:
@@ -57,20 +85,23 @@ def _check_points(name: str, value: torch.Tensor, n: int | None = None) -> None:
 
 
 def lambertian_term(
-    normal_world: torch.Tensor, point: torch.Tensor, sonar: torch.Tensor, q: float = 2.0
+    normal_world: torch.Tensor, point: torch.Tensor, sonar: torch.Tensor, exponent: float = 1.0
 ) -> torch.Tensor:
-    """``max(cos(incidence), 0)^q`` of ``N`` bins.
+    """``max(cos(incidence), 0)^exponent`` of ``N`` bins.
 
     The incidence is the angle between the surface normal and the direction from the
     point to the sonar (:func:`sss2bathy.geometry.incidence_angle`); its cosine is taken
     from the dot product directly, which keeps the gradient finite where the surface
-    faces the sonar head-on. Back-facing surfaces (incidence > 90 deg) return 0.
+    faces the sonar head-on. Back-facing surfaces (incidence > 90 deg) return 0; for
+    exponents below 1 the cosine is floored at 1e-6 in front of the surface so the
+    gradient stays finite at grazing incidence.
 
     Args:
         normal_world: ``(N, 3)`` world normals (any length, e.g. ``[-dz/dx, -dz/dy, 1]``).
         point: ``(N, 3)`` seafloor points (m).
         sonar: ``(N, 3)`` sonar positions (m).
-        q: Lambertian exponent, ``>= 1`` (2 as Bore's auvlib, 1 for Lambert's law).
+        exponent: the exponent applied, ``> 0`` (:func:`lambert_exponent`: ``q / 2`` for
+            amplitude data, ``q`` for power).
 
     Returns:
         ``(N,)`` values in ``[0, 1]``.
@@ -78,13 +109,16 @@ def lambertian_term(
     _check_points("normal_world", normal_world)
     _check_points("point", point, normal_world.shape[0])
     _check_points("sonar", sonar, normal_world.shape[0])
-    if not q >= 1.0:
-        raise ValueError(f"q: expected a Lambertian exponent >= 1, found {q}")
+    if not exponent > 0.0:
+        raise ValueError(f"exponent: expected > 0, found {exponent}")
     to_sonar = sonar - point
     cos = (normal_world * to_sonar).sum(-1) / (
         torch.linalg.vector_norm(normal_world, dim=-1) * torch.linalg.vector_norm(to_sonar, dim=-1)
     ).clamp_min(1e-12)
-    return cos.clamp(0.0, 1.0) ** q
+    if exponent >= 1.0:
+        return cos.clamp(0.0, 1.0) ** exponent
+    front = cos > 0.0
+    return torch.where(front, cos.clamp(1e-6, 1.0) ** exponent, torch.zeros_like(cos))
 
 
 def piecewise_linear(x: torch.Tensor, knots: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -203,10 +237,18 @@ class LambertianSensorModel(SensorModel):
         range_min_m, range_max_m: span of the range-gain knots (m), ``0 <= min < max``;
             null: the span of the bins' ranges, :meth:`setup_from_data`.
         n_beam_knots, n_gain_knots: knots of ``B`` and ``G`` (``>= 2``).
-        q: Lambertian exponent (``>= 1``; 2 as auvlib, 1 for Lambert's law).
+        q: Lambert's exponent *in power* (``P ~ cos(incidence)^q``, ``>= 1``; 2 for
+            Lambert's law of backscatter, 1 for the plain cosine law).
+        intensity_kind: what the sidescan stores, ``"amplitude"`` (the simulator, XTF:
+            the model applies ``cos^(q/2)``) or ``"power"`` (``cos^q``).
         reflectivity: ``"constant"`` (rho = 1, folded into K) or ``"field"``
             (:class:`ReflectivityField` over world x, y; its level and ``K`` share one
             scale, only their product is observable).
+        field_lr: learning rate of the reflectivity field's parameters (its own optimiser
+            group, :meth:`parameter_groups`); ``None``: the sensor's learning rate.
+        field_weight: weight of the penalty ``Var(log rho)`` over each batch's crossings,
+            added to the loss, so that the field explains broad material contrasts and
+            not the slope shading the bathymetry has to explain (0: none).
         shadow_threshold: bins with normalised intensity below this are dropped (shadows).
         near_range_cut_m: bins with slant range below this are dropped (near nadir).
         init_scale: initial ``K`` (> 0).
@@ -228,7 +270,10 @@ class LambertianSensorModel(SensorModel):
         n_beam_knots: int = 8,
         n_gain_knots: int = 8,
         q: float = 2.0,
+        intensity_kind: str = "amplitude",
         reflectivity: str = "constant",
+        field_lr: float | None = None,
+        field_weight: float = 0.0,
         shadow_threshold: float = 0.3,
         near_range_cut_m: float = 0.0,
         init_scale: float = 1.0,
@@ -243,18 +288,28 @@ class LambertianSensorModel(SensorModel):
             if int(k) < 2:
                 raise ValueError(f"{name}: expected >= 2 knots, found {k}")
         if not q >= 1.0:
-            raise ValueError(f"q: expected a Lambertian exponent >= 1, found {q}")
+            raise ValueError(f"q: expected a Lambertian exponent in power >= 1, found {q}")
         if reflectivity not in REFLECTIVITY_KINDS:
             raise ValueError(
                 f"reflectivity: expected one of {REFLECTIVITY_KINDS}, found {reflectivity!r}"
             )
+        if field_lr is not None and not field_lr > 0.0:
+            raise ValueError(
+                f"field_lr: expected a positive learning rate or null, found {field_lr}"
+            )
+        if not field_weight >= 0.0:
+            raise ValueError(f"field_weight: expected a weight >= 0, found {field_weight}")
         if not near_range_cut_m >= 0.0:
             raise ValueError(f"near_range_cut_m: expected >= 0 m, found {near_range_cut_m}")
         if not init_scale > 0.0:
             raise ValueError(f"init_scale: expected > 0, found {init_scale}")
 
         self.q = float(q)
+        self.intensity_kind = intensity_kind
+        self.exponent = lambert_exponent(self.q, intensity_kind)
         self.reflectivity = reflectivity
+        self.field_lr = None if field_lr is None else float(field_lr)
+        self.field_weight = float(field_weight)
         self.shadow_threshold = float(shadow_threshold)
         self.near_range_cut_m = float(near_range_cut_m)
         self.calibrate_scale = bool(calibrate_scale)
@@ -392,6 +447,19 @@ class LambertianSensorModel(SensorModel):
         r = torch.linspace(float(knots[0]), float(knots[-1]), n, device=knots.device)
         return r, range_gain_pwl(r, knots, self.gain_values()).detach()
 
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """Optimiser groups: ``K``, ``G``, ``B`` (the sensor's learning rate), and the
+        reflectivity field with ``lr = field_lr`` when both are set. A group without
+        ``"lr"`` takes the caller's sensor learning rate."""
+        field = list(self.reflectivity_field.parameters()) if self.reflectivity_field else []
+        field_ids = {id(p) for p in field}
+        groups: list[dict[str, Any]] = [
+            {"params": [p for p in self.parameters() if id(p) not in field_ids]}
+        ]
+        if field:
+            groups.append({"params": field, **({"lr": self.field_lr} if self.field_lr else {})})
+        return groups
+
     # -- SensorModel ---------------------------------------------------------------------
     def bin_mask(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """``(B, 2, n_bins)`` bool: valid mask, intensity >= threshold, range >= near cut.
@@ -423,6 +491,10 @@ class LambertianSensorModel(SensorModel):
     def predict(self, geo: ArcGeometry) -> torch.Tensor:
         """``(N,)`` predicted normalised intensity; differentiable in ``geo.grad`` and the
         sensor's parameters."""
+        return self._predict(geo)[0]
+
+    def _predict(self, geo: ArcGeometry) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(prediction (N,), reflectivity (N,) or None)``."""
         n = geo.grad.shape[0]
         if geo.grad.ndim != 2 or geo.grad.shape[-1] != 2:
             raise ValueError(f"geo.grad: expected shape (N, 2), found {tuple(geo.grad.shape)}")
@@ -436,27 +508,32 @@ class LambertianSensorModel(SensorModel):
                 "set_domain() before the fit"
             )
         normal = world_normal(geo.grad[:, 0], geo.grad[:, 1])
-        m = lambertian_term(normal, geo.points.to(normal.dtype), geo.sonar.to(normal.dtype), self.q)
+        m = lambertian_term(
+            normal, geo.points.to(normal.dtype), geo.sonar.to(normal.dtype), self.exponent
+        )
         # the free log-values (not the normalised curves) keep each knot's gradient its own
         b = beam_pattern_pwl(geo.theta, self.beam_knots_rad, self.beam_log_values.exp())
         g = range_gain_pwl(geo.range_m, self.gain_knots_m, self.gain_log_values.exp())
         pred = self.log_scale.exp() * g * b * m
+        rho = None
         if self.reflectivity_field is not None:
-            pred = pred * self.reflectivity_field(geo.points[:, :2])
-        return pred
+            rho = self.reflectivity_field(geo.points[:, :2].to(pred.dtype))
+            pred = pred * rho
+        return pred, rho
 
     def loss(self, geo: ArcGeometry, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """Mean absolute intensity error over the ``N`` bins (0 with a graph when N = 0).
+        """Mean absolute intensity error over the ``N`` bins (0 with a graph when N = 0),
+        plus ``field_weight * Var(log rho)`` over the bins with a reflectivity field.
 
         Returns ``(loss, logs)`` with ``intensity_l1``, ``scale``, ``pred_mean`` and
-        ``target_mean`` (detached scalars).
+        ``target_mean`` (detached scalars), and with a field ``reflectivity_log_std``.
         """
         n = geo.grad.shape[0]
         if target.shape != (n,):
             raise ValueError(f"target: expected shape ({n},), found {tuple(target.shape)}")
         if self.calibrate_scale and not bool(self.scale_calibrated):
             self._calibrate(geo, target)
-        pred = self.predict(geo)
+        pred, rho = self._predict(geo)
         target = target.to(pred.dtype)
         loss = (pred - target).abs().mean() if n > 0 else pred.sum() * 0.0
         logs = {
@@ -465,6 +542,12 @@ class LambertianSensorModel(SensorModel):
             "pred_mean": pred.detach().mean() if n > 0 else pred.detach().sum(),
             "target_mean": target.mean() if n > 0 else target.sum(),
         }
+        if rho is not None:
+            log_rho = rho.clamp_min(1e-12).log()
+            spread = log_rho.var(unbiased=False) if n > 1 else log_rho.sum() * 0.0
+            logs["reflectivity_log_std"] = spread.detach().sqrt()
+            if self.field_weight > 0.0:
+                loss = loss + self.field_weight * spread
         return loss, logs
 
     def _calibrate(self, geo: ArcGeometry, target: torch.Tensor) -> None:

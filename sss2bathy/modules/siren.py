@@ -327,11 +327,20 @@ class SirenModule(pl.LightningModule):
             if self.encoding_lr is not None:
                 group_enc["lr"] = self.encoding_lr
             groups.append(group_enc)
-        sensor_params = list(self.sensor.parameters()) if self.sensor is not None else []
-        if sensor_params:
-            group: dict[str, Any] = {"params": sensor_params}
-            if self.sensor_lr is not None:
-                group["lr"] = self.sensor_lr
+        # a sensor may split its parameters (e.g. the Lambertian reflectivity field's own lr);
+        # groups without "lr" take sensor_lr
+        sensor_groups = (
+            self.sensor.parameter_groups()
+            if hasattr(self.sensor, "parameter_groups")
+            else [{"params": list(self.sensor.parameters())}]
+            if self.sensor is not None
+            else []
+        )
+        for group in sensor_groups:
+            if not group["params"]:
+                continue
+            if self.sensor_lr is not None and "lr" not in group:
+                group = {**group, "lr": self.sensor_lr}
             groups.append(group)
         opt = self.optimizer_factory(params=groups)
         if self.scheduler_factory is None:
