@@ -14,7 +14,7 @@ export SSS2BATHY_ROOT := $(CURDIR)
 export HYDRA_FULL_ERROR := 1
 
 .PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
-	siren-cnn-n2d siren-lambert siren-lambert-all d2 report paper sweep-example bench schedule-study tb clean
+	siren-cnn-n2d siren-lambert siren-lambert-all d2 d3 report paper sweep-example bench schedule-study tb clean
 
 help: ## Show this help
 	@grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
@@ -46,9 +46,10 @@ format: install ## Apply ruff formatting and safe fixes
 demo: install ## The whole paper pipeline at demo scale on the synthetic surveys, then the report
 	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) $(ARGS)
 
-prepare: install ## Generate + drape both synthetic surveys (cached)
+prepare: install ## Generate + drape the synthetic surveys (cached)
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_d1 scale=$(SCALE) $(ARGS)
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_d2 scale=$(SCALE) $(ARGS)
+	$(BIN)/sss2bathy-prepare data/survey=synthetic_d3 scale=$(SCALE) $(ARGS)
 
 cnn: install ## Paper experiment: normal CNN (train d1, test d1 test lines + d2)
 	$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
@@ -77,6 +78,13 @@ d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on syn
 		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
 	else \
 		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
+	fi
+
+d3: install ## Stress site: another sonar (CNN-N2d and Lambert on synthetic_d3; trains a CNN if none)
+	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
+		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[prepare_d3,d3_siren_cnn_n2d,d3_siren_lambert] $(ARGS); \
+	else \
+		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[prepare_d3,cnn,d3_siren_cnn_n2d,d3_siren_lambert] $(ARGS); \
 	fi
 
 report: install ## Gather the latest run of each experiment into outputs/report/

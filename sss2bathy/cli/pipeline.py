@@ -24,6 +24,7 @@ from sss2bathy.utils.atomic import atomic_write_text
 STAGES: list[tuple[str, str, list[str]]] = [
     ("prepare_d1", "sss2bathy.cli.prepare", ["data/survey=synthetic_d1"]),
     ("prepare_d2", "sss2bathy.cli.prepare", ["data/survey=synthetic_d2"]),
+    ("prepare_d3", "sss2bathy.cli.prepare", ["data/survey=synthetic_d3"]),
     ("cnn", "sss2bathy.cli.train", ["experiment=cnn"]),
     ("siren_direct_fit", "sss2bathy.cli.train", ["experiment=siren_direct_fit"]),
     ("siren_heights_only", "sss2bathy.cli.train", ["experiment=siren_heights_only"]),
@@ -33,6 +34,8 @@ STAGES: list[tuple[str, str, list[str]]] = [
     ("siren_lambert", "sss2bathy.cli.train", ["experiment=siren_lambert"]),
     ("d2_siren_cnn_n2d", "sss2bathy.cli.train", ["experiment=d2_siren_cnn_n2d"]),
     ("d2_siren_lambert", "sss2bathy.cli.train", ["experiment=d2_siren_lambert"]),
+    ("d3_siren_cnn_n2d", "sss2bathy.cli.train", ["experiment=d3_siren_cnn_n2d"]),
+    ("d3_siren_lambert", "sss2bathy.cli.train", ["experiment=d3_siren_lambert"]),
     ("report", "sss2bathy.cli.report", []),
 ]
 STAGE_NAMES = [s[0] for s in STAGES]

@@ -7,6 +7,7 @@ and ``run_info.json``) and writes ``outputs/report/``:
 * ``index.md`` — every table and figure, with the run folders it came from;
 * ``table_cnn.{md,csv}`` — Table 2 (CNN, test lines of ``synthetic_d1`` and all of ``synthetic_d2``);
 * ``table_siren_d1.{md,csv}``, ``table_siren_d2.{md,csv}`` — Tables 3 and 4;
+  ``table_siren_d3.{md,csv}`` — the same on ``synthetic_d3`` (another sonar; no paper rows);
 * ``pdf_d1.png``, ``pdf_d2.png`` — probability densities of the signed height errors;
 * ``maps_d1.png``, ``maps_d2.png`` — bathymetry and HSV gradient, MBES beside every variant;
 * ``zoom_d1_<k>.png`` — the roughest areas, gradients of MBES / GT-N2d / CNN-N2d / Lambert
@@ -48,6 +49,8 @@ D1_VARIANTS = [
     ("siren_lambert", "SIREN-Lambert"),
 ]
 D2_VARIANTS = [("d2_siren_cnn_n2d", "SIREN-CNN-N2d"), ("d2_siren_lambert", "SIREN-Lambert")]
+# the different-sonar stress site (no counterpart in the paper)
+D3_VARIANTS = [("d3_siren_cnn_n2d", "SIREN-CNN-N2d"), ("d3_siren_lambert", "SIREN-Lambert")]
 ZOOM_LABELS = ("SIREN-GT-N2d", "SIREN-CNN-N2d", "SIREN-Lambert")
 OURS = "ours (synthetic survey)"
 
@@ -368,6 +371,9 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
     )
     index += _survey_section(
         D2_VARIANTS, runs, SIREN_D2_TABLE, "d2", "SIREN on synthetic_d2 (Table 4)", out, False
+    )
+    index += _survey_section(
+        D3_VARIANTS, runs, {}, "d3", "SIREN on synthetic_d3 (another sonar)", out, False
     )
     times = outputs_dir / "report" / "stage_times.json"
     if times.is_file():

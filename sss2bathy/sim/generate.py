@@ -94,6 +94,24 @@ def simulate_line(
     )
 
 
+def altitude_summary(planned: list[PlannedLine]) -> dict[str, dict[str, float]]:
+    """Sonar altitude above the true seabed: min / median / max over ``all`` pings and per split."""
+    groups = {
+        "all": planned,
+        **{s: [ln for ln in planned if ln.split == s] for s in ("train", "test")},
+    }
+    out = {}
+    for key, lines in groups.items():
+        if lines:
+            a = np.concatenate([ln.altitude_m for ln in lines])
+            out[key] = {
+                "min": round(float(a.min()), 3),
+                "median": round(float(np.median(a)), 3),
+                "max": round(float(a.max()), 3),
+            }
+    return out
+
+
 # Worker state for parallel line simulation (one terrain + ray caster per process).
 _WORKER: dict[str, Any] = {}
 
@@ -224,6 +242,7 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
             "frac_below_0.2": float(np.mean(abs_nlat < 0.2)) if abs_nlat.size else float("nan"),
             "frac_above_0.5": float(np.mean(abs_nlat > 0.5)) if abs_nlat.size else float("nan"),
         },
+        "altitude_m": altitude_summary(planned),
         "mask_counts": mask_reason_counts(masks),
         "timing_s": {
             "terrain": round(t_terrain - t_start, 3),

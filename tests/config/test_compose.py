@@ -38,6 +38,8 @@ def test_paper_experiments_exist():
         "siren_lambert_all",
         "d2_siren_cnn_n2d",
         "d2_siren_lambert",
+        "d3_siren_cnn_n2d",
+        "d3_siren_lambert",
     }
     assert expected <= set(EXPERIMENTS)
 

@@ -237,7 +237,14 @@ def test_cnn_experiment_composes_with_loss_override(loss):
     assert cfg.task_name == "cnn" and cfg.model.loss.kind == loss
     assert cfg.model.net.base_width == cfg.cnn_scale.tiny.base_width
     assert cfg.trainer.max_epochs == cfg.model.scheduler.total_iters == 1
-    assert [s.name for s in cfg.data.test_surveys] == [cfg.cnn_test_surveys.tiny.name]
-    assert cfg.data.test_surveys[0].name != cfg.data.survey.name
+    assert (
+        [s.name for s in cfg.data.test_surveys]
+        == [
+            cfg.cnn_test_surveys.tiny.name,
+            cfg.cnn_test_surveys_d3.tiny.name,
+        ]
+        == ["synthetic_d2_tiny", "synthetic_d3_tiny"]
+    )
+    assert cfg.data.survey.name not in {s.name for s in cfg.data.test_surveys}
     model = instantiate(cfg.model, _recursive_=True, _convert_="partial")
     assert model.loss_fn.kind == loss and model.net.base_width == cfg.model.net.base_width

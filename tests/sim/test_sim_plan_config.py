@@ -69,7 +69,7 @@ def test_degrees_in_config_radians_inside_and_hash():
         SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "demo", stray_key=1))
 
 
-@pytest.mark.parametrize("survey", ["synthetic_d1", "synthetic_d2"])
+@pytest.mark.parametrize("survey", ["synthetic_d1", "synthetic_d2", "synthetic_d3"])
 @pytest.mark.parametrize("scale", ["tiny", "demo", "paper"])
 def test_presets_compose_and_plan(survey, scale):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
@@ -89,6 +89,9 @@ def test_presets_compose_and_plan(survey, scale):
         ("synthetic_d2", "paper"): (0, 36, 2000, 512),
         ("synthetic_d2", "demo"): (0, 6, 300, 256),
         ("synthetic_d2", "tiny"): (0, 4, 60, 64),
+        ("synthetic_d3", "paper"): (0, 36, 2000, 512),
+        ("synthetic_d3", "demo"): (0, 6, 300, 256),
+        ("synthetic_d3", "tiny"): (0, 4, 60, 64),
     }[(survey, scale)]
     assert (len(n_train), len(n_test)) == expected[:2]
     pings = np.array([len(ln.time_s) for ln in lines])
@@ -98,6 +101,66 @@ def test_presets_compose_and_plan(survey, scale):
     sets = [ln.line_set for ln in n_test]
     assert abs(sets.count("main") - sets.count("cross")) <= 1
     assert {round(math.degrees(ln.heading_rad)) % 180 for ln in n_test} == {0, 90}
+
+
+def _composed_survey(survey: str, scale: str) -> dict:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        composed = compose(
+            config_name="prepare", overrides=[f"data/survey={survey}", f"scale={scale}"]
+        )
+    return OmegaConf.to_container(composed.data.survey, resolve=True)
+
+
+@pytest.mark.parametrize("scale", ["tiny", "demo", "paper"])
+def test_d2_keeps_d1_instrument_and_d3_does_not(scale):
+    """The paper's Dataset II used Dataset I's ship and sonar: synthetic_d2's sonar block
+    (after its scale preset) equals synthetic_d1's except for the water; synthetic_d3 is
+    the different-sonar stress site. Both read as plain files (bench, tests) and composed."""
+    d1, d2, d3 = (
+        _composed_survey(s, scale) for s in ("synthetic_d1", "synthetic_d2", "synthetic_d3")
+    )
+    for survey, plain in (("synthetic_d1", d1), ("synthetic_d2", d2)):
+        assert preset(survey, scale)["sonar"] == plain["sonar"]  # plain files, no defaults list
+    son1, son2, son3 = ({k: v for k, v in d["sonar"].items() if k != "water"} for d in (d1, d2, d3))
+    assert son2 == son1
+    assert d2["plan"]["sonar_depth_m"] == d1["plan"]["sonar_depth_m"]  # same hull mount
+    assert d2["plan"]["mount"] == d1["plan"]["mount"] == "hull"
+    assert d2["sonar"]["water"]["salinity_ppt"] < 1.0 < d1["sonar"]["water"]["salinity_ppt"]
+    differs = {k for k in son1 if son3[k] != son1[k]}
+    assert {"tilt_deg", "beam_width_deg", "beam_rolloff", "tvg"} <= differs
+    # the geometry of the swath is the scale's, shared by all three sites
+    for key in ("max_range_m", "n_bins", "min_range_m"):
+        assert son3[key] == son1[key]
+    names = {d["name"] for d in (d1, d2, d3)}
+    seeds = {d["seed"] for d in (d1, d2, d3)}
+    origins = {(d["origin"]["easting"], d["origin"]["northing"]) for d in (d1, d2, d3)}
+    assert len(names) == len(seeds) == len(origins) == 3
+
+
+def _planned_altitudes(survey: str, scale: str) -> np.ndarray:
+    from sss2bathy.sim.generate import altitude_summary
+    from sss2bathy.sim.terrain import generate_terrain
+
+    cfg = SyntheticSurveyConfig.from_mapping(preset(survey, scale))
+    terrain = generate_terrain(cfg.terrain, cfg.materials, np.random.default_rng([cfg.seed, 0]))
+    lines = plan_survey(cfg.plan, cfg.sonar, terrain, np.random.default_rng([cfg.seed, 1]))
+    a = np.concatenate([ln.altitude_m for ln in lines])
+    summary = altitude_summary(lines)["all"]
+    assert summary["min"] == pytest.approx(a.min(), abs=1e-3)
+    assert summary["median"] == pytest.approx(np.median(a), abs=1e-3)
+    return a
+
+
+def test_demo_sites_fly_at_realistic_comparable_altitudes():
+    """The paper's depths: 9.03-25.07 m (Dataset I), 10.45-13.66 m (II); the demo sonar
+    reaches 30 m. Both demo sites' median altitudes lie in the paper's range, within 3 m of
+    each other; synthetic_d1's relief and slope give the wider spread."""
+    a1, a2 = _planned_altitudes("synthetic_d1", "demo"), _planned_altitudes("synthetic_d2", "demo")
+    m1, m2 = float(np.median(a1)), float(np.median(a2))
+    assert 10.0 <= m1 <= 16.0 and 10.0 <= m2 <= 14.0
+    assert abs(m1 - m2) <= 3.0
+    assert a1.min() > 8.0 and a1.max() < 20.0 and a2.min() > 9.0 and a2.max() < 15.0
+    assert np.ptp(a1) > 5.0 and np.ptp(a1) > 2 * np.ptp(a2)
 
 
 def test_plan_geometry_and_navigation():

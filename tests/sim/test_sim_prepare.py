@@ -73,13 +73,19 @@ def test_tiny_survey_contents(tiny_d1):
     assert meta["n_lat_valid_bins"]["frac_below_0.2"] > 0.8
 
 
-def test_d2_lines_are_all_test_lines():
-    cfg = SyntheticSurveyConfig.from_mapping(preset("synthetic_d2", "tiny"))
+@pytest.mark.parametrize("survey", ["synthetic_d2", "synthetic_d3"])
+def test_lake_sites_are_all_test_lines(survey):
+    cfg = SyntheticSurveyConfig.from_mapping(preset(survey, "tiny"))
     survey, _ = generate_survey(cfg)
     assert survey.splits["train"] == []
     assert sorted(survey.splits["test"]) == sorted(ln.name for ln in survey.lines)
     assert len(survey.lines) == 4
     assert survey.metadata["physics"]["absorption_db_per_m"] < 0.27  # fresh water
+    alt = survey.metadata["altitude_m"]
+    assert set(alt) == {"all", "test"}  # no training lines
+    pings = np.concatenate([ln.altitude_m for ln in survey.lines])
+    assert alt["all"]["min"] <= alt["all"]["median"] <= alt["all"]["max"]
+    assert alt["all"]["median"] == pytest.approx(float(np.median(pings)), abs=1e-3)
 
 
 def test_prepare_reuses_the_cache_and_regenerates_on_change(tmp_path, monkeypatch):
