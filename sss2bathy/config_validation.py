@@ -165,6 +165,9 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("data.survey.max_speed_mps", positive, "a positive speed (m/s)"),
     ("data.survey.max_nav_gap_s", positive, "a positive duration (s)"),
     ("data.survey.min_first_return_m", non_negative, "a distance >= 0 (m)"),
+    ("data.survey.blanking_m", non_negative, "a distance >= 0 (m)"),
+    ("data.survey.auto_blanking", boolean, "true or false"),
+    ("data.survey.altitude_tolerance_m", positive, "a positive distance (m) or null"),
 ]
 
 

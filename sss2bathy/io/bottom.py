@@ -2,23 +2,36 @@
 
 Algorithm (per ping, vectorised over pings):
 
+0. **Unusable pings**: pings with non-finite samples, constant pings and pings mostly at the
+   waterfall's maximum (saturated) are flagged (``bad``) and get no pick.
 1. **Smooth**: a running median over ``smooth_pings`` pings along track (the seabed edge moves
    little from ping to ping; a one-ping burst is dropped) and a box filter over
    ``smooth_bins`` bins along range (suppresses speckle).
-2. **Coarse pick**: levels of the smoothed ping — the water column/shadow level ``floor`` (a low
-   quantile) and the seabed level ``top`` (a high quantile) — and the first bin from which
-   ``sustain_bins`` consecutive smoothed samples exceed ``floor + coarse_fraction (top - floor)``.
-3. **Water-column noise**: mean ``mu`` and standard deviation ``sigma`` of the smoothed samples
-   between ``min_range_m`` and the coarse pick (the water column of this ping; when it holds
-   fewer than 3 bins, ``floor`` and the robust spread of the darkest bins stand in).
-4. **Threshold** ``mu + noise_sigmas * sigma`` (never above the coarse threshold): the final pick
+2. **Blanking** (transducer ring-down): the zone nearer than ``blanking_m`` is never searched.
+   With ``auto_blanking`` the zone is also estimated from the near-field decay of the
+   along-track median ping: when that ping starts bright (above the coarse threshold of
+   step 3), the ring-down ends where it has decayed to the water-column level (median plus
+   3 robust deviations of the dark gap before the bottom rise), plus ``smooth_bins`` bins.
+   Per ping, a run of saturated samples from bin 0 extends the zone.
+3. **Coarse pick**: levels of the smoothed ping — the water column/shadow level ``floor`` (a low
+   quantile) and the seabed level ``top`` (a high quantile) — and the first bin beyond the
+   blanking from which ``sustain_bins`` consecutive smoothed samples exceed
+   ``floor + coarse_fraction (top - floor)``.
+4. **Water-column noise**: mean ``mu`` and standard deviation ``sigma`` of the samples between
+   the blanking and the coarse pick (when it holds fewer than 3 bins, ``floor`` and the robust
+   spread of the darkest bins stand in).
+5. **Threshold** ``mu + noise_sigmas * sigma`` (never above the coarse threshold): the final pick
    is the earliest sustained rise above it, at or before the coarse pick.
-5. **Sub-bin edge**: smoothing moves the edge earlier by up to ``smooth_bins // 2`` bins, so the
+6. **Sub-bin edge**: smoothing moves the edge earlier by up to ``smooth_bins // 2`` bins, so the
    pick is refined to the first sample (filtered along track only) above the threshold (raised
-   for single samples by sqrt(smooth_bins)) within that many bins; the altitude is the leading edge of the picked bin (midway to the previous bin centre).
-6. **Along track**: pings without a rise (no contrast) are filled by linear interpolation
-   between detected pings, then a running median over ``median_pings`` pings (mirrored at the
-   ends) removes isolated false picks (fish, noise bursts).
+   for single samples by sqrt(smooth_bins)) within that many bins; the altitude is the leading
+   edge of the picked bin (midway to the previous bin centre).
+7. **Unsupported picks are rejected**: a rise that is already above the threshold at the first
+   searchable bin may have begun inside the blanking zone, so its edge is unknown (the
+   altitude stays NaN, ``rejected``).
+8. **Along track**: a running median over ``median_pings`` picked pings removes isolated false
+   picks (fish, noise bursts); gaps of at most ``max_fill_pings`` pings between picks are
+   filled by linear interpolation (``interpolated``); longer gaps stay NaN.
 
 At nadir on a flat seafloor the first echo arrives at slant range = altitude, so the pick is
 the sonar's height above the closest seabed. A surface echo arriving earlier (towfish deeper
@@ -27,10 +40,42 @@ than it is high) is excluded with ``min_range_m`` (e.g. a little beyond the sens
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 
-__all__ = ["detect_first_return"]
+__all__ = ["BottomPicks", "detect_first_return"]
+
+
+@dataclass(frozen=True)
+class BottomPicks:
+    """What the detector found, per ping.
+
+    Attributes:
+        altitude_m: ``(P,)`` altitude (m) > 0, NaN where no supported pick.
+        picked: ``(P,)`` a supported first return was picked in this ping.
+        interpolated: ``(P,)`` filled between picks (short gaps only).
+        rejected: ``(P,)`` a rise was found but its edge lies in the blanking zone.
+        bad: ``(P,)`` unusable samples (non-finite, constant or saturated over the ping).
+        blanking_m: the blanking range used (m; per-ping saturation may extend it).
+    """
+
+    altitude_m: np.ndarray
+    picked: np.ndarray
+    interpolated: np.ndarray
+    rejected: np.ndarray
+    bad: np.ndarray
+    blanking_m: float
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "picked": int(self.picked.sum()),
+            "interpolated": int(self.interpolated.sum()),
+            "rejected": int(self.rejected.sum()),
+            "bad_pings": int(self.bad.sum()),
+            "no_pick": int(np.isnan(self.altitude_m).sum()),
+        }
 
 
 def _first_sustained(above: np.ndarray, sustain: int) -> tuple[np.ndarray, np.ndarray]:
@@ -40,6 +85,54 @@ def _first_sustained(above: np.ndarray, sustain: int) -> tuple[np.ndarray, np.nd
     n_win = B - sustain + 1
     runs = (csum[:, sustain:] - csum[:, :n_win]) == sustain
     return np.argmax(runs, axis=1), runs.any(axis=1)
+
+
+def bad_pings(w: np.ndarray, saturated_fraction: float = 0.5) -> dict[str, np.ndarray]:
+    """``(P,)`` masks of pings that carry no usable echo: ``nonfinite`` (any NaN/inf sample),
+    ``constant`` (every sample equal) and ``saturated`` (more than ``saturated_fraction`` of the
+    samples at the waterfall's maximum)."""
+    w = np.asarray(w, dtype=np.float64)
+    nonfinite = ~np.isfinite(w).all(axis=1)
+    safe = np.where(np.isfinite(w), w, 0.0)
+    constant = ~nonfinite & (np.ptp(safe, axis=1) == 0)
+    top = safe[~nonfinite].max() if (~nonfinite).any() else 0.0
+    at_top = safe >= top * (1 - 1e-6) if top > 0 else np.zeros_like(safe, bool)
+    saturated = ~nonfinite & ~constant & (at_top.mean(axis=1) > saturated_fraction)
+    return {"nonfinite": nonfinite, "constant": constant, "saturated": saturated}
+
+
+def _auto_blanking(s: np.ndarray, coarse_fraction: float, pad_bins: int) -> int:
+    """First bin past the ring-down of the along-track median ping (0 when it starts dark)."""
+    prof = np.median(s, axis=0)
+    floor, top = np.quantile(prof, 0.1), np.quantile(prof, 0.95)
+    if not top > floor:
+        return 0
+    thr = floor + coarse_fraction * (top - floor)
+    if prof[0] <= thr:
+        return 0
+    below = prof <= thr
+    if not below.any():
+        return prof.size  # bright from the first to the last bin: nothing can be supported
+    drop = int(np.argmax(below))
+    rise, found = _first_sustained((prof > thr)[None, drop:], min(3, prof.size - drop))
+    end = drop + int(rise[0]) if found[0] else prof.size
+    gap = prof[drop:end]
+    if gap.size < 2:
+        return min(end + pad_bins, prof.size)
+    tail = gap[gap.size // 2 :]
+    level = np.median(tail) + 3.0 * 1.4826 * np.median(np.abs(tail - np.median(tail)))
+    settled = int(np.argmax(gap <= level))
+    return min(drop + settled + pad_bins, prof.size)
+
+
+def _running_nanmedian(x: np.ndarray, ok: np.ndarray, size: int) -> np.ndarray:
+    """Running median over the ``ok`` entries only (in order), window ``size`` (odd)."""
+    out = x.copy()
+    idx = np.flatnonzero(ok)
+    if size > 1 and idx.size > 1:
+        win = min(size, 2 * ((idx.size - 1) // 2) + 1)
+        out[idx] = median_filter(x[idx], size=win, mode="reflect")
+    return out
 
 
 def detect_first_return(
@@ -55,29 +148,38 @@ def detect_first_return(
     sustain_bins: int = 4,
     median_pings: int = 5,
     min_range_m: float = 0.0,
-) -> np.ndarray:
+    blanking_m: float = 0.0,
+    auto_blanking: bool = True,
+    saturated_fraction: float = 0.5,
+    max_fill_pings: int = 5,
+) -> BottomPicks:
     """Altitude (m) of the sonar above the seabed from the first bottom return of each ping.
 
     Args:
         waterfall: ``(P, B)`` intensities (any linear scale), bin 0 nearest the sonar; e.g. the
-            mean of the port and starboard waterfalls.
+            mean of the port and starboard waterfalls. Non-finite samples flag their ping.
         range_m: ``(B,)`` slant range of each bin (m), positive and increasing.
         smooth_bins: box-filter width along range (bins, >= 1).
-        smooth_pings: box-filter width along track (pings, >= 1).
+        smooth_pings: median-filter width along track (pings, >= 1).
         floor_quantile: quantile of the smoothed ping taken as the water-column level.
         top_quantile: quantile of the smoothed ping taken as the seabed level.
         coarse_fraction: coarse threshold position between the two levels, in ``(0, 1)``.
         noise_sigmas: final threshold, in water-column noise standard deviations above its mean.
         sustain_bins: consecutive bins that must exceed a threshold (>= 1; more than
             ``smooth_bins`` so that one noise spike cannot pass alone).
-        median_pings: running-median window along track (odd, >= 1; 1 disables it).
-        min_range_m: picks at slant ranges below this are ignored (surface echo, ringing).
+        median_pings: running-median window along track over picked pings (odd, >= 1).
+        min_range_m: picks at slant ranges below this are ignored (surface echo).
+        blanking_m: the ring-down/blanking zone (m) never searched.
+        auto_blanking: also estimate the blanking zone from the near-field decay.
+        saturated_fraction: a ping with more than this fraction of samples at the waterfall's
+            maximum is saturated (flagged ``bad``).
+        max_fill_pings: longest run of pings without a pick filled by interpolation (0: none).
 
     Returns:
-        ``(P,)`` float64 altitudes (m), never NaN.
+        :class:`BottomPicks` (altitudes NaN where nothing supports a pick).
 
     Raises:
-        ValueError: on bad arguments, or when no ping shows a bottom return.
+        ValueError: on bad arguments.
     """
     w = np.asarray(waterfall, dtype=np.float64)
     r = np.asarray(range_m, dtype=np.float64)
@@ -87,8 +189,6 @@ def detect_first_return(
         raise ValueError(f"range_m: expected shape ({w.shape[1]},), found {r.shape}")
     if not np.all(np.isfinite(r)) or np.any(r <= 0) or np.any(np.diff(r) <= 0):
         raise ValueError("range_m: expected positive, finite, increasing slant ranges")
-    if not np.all(np.isfinite(w)):
-        raise ValueError("waterfall: expected finite intensities, found NaN/inf")
     if smooth_pings < 1:
         raise ValueError(f"smooth_pings: expected >= 1, found {smooth_pings}")
     if smooth_bins < 1 or not 1 <= sustain_bins <= w.shape[1]:
@@ -107,53 +207,99 @@ def detect_first_return(
             "floor_quantile/top_quantile: expected 0 <= floor < top <= 1, "
             f"found {floor_quantile}/{top_quantile}"
         )
+    if not (np.isfinite(blanking_m) and blanking_m >= 0):
+        raise ValueError(f"blanking_m: expected a distance >= 0 (m), found {blanking_m}")
+    if not 0.0 < saturated_fraction <= 1.0:
+        raise ValueError(
+            f"saturated_fraction: expected a value in (0, 1], found {saturated_fraction}"
+        )
+    if max_fill_pings < 0:
+        raise ValueError(f"max_fill_pings: expected an integer >= 0, found {max_fill_pings}")
 
     P, B = w.shape
     rows, bins = np.arange(P), np.arange(B)
-    in_range = r >= min_range_m
-    w = median_filter(w, size=(min(smooth_pings, P), 1), mode="nearest")
+    flags = bad_pings(w, saturated_fraction)
+    bad = flags["nonfinite"] | flags["constant"] | flags["saturated"]
+    empty = BottomPicks(
+        np.full(P, np.nan), np.zeros(P, bool), np.zeros(P, bool), np.zeros(P, bool), bad, 0.0
+    )
+    if bad.all():
+        return empty
+    safe = np.where(np.isfinite(w), w, 0.0)
+    sat_level = safe[~bad].max()
+
+    good = np.flatnonzero(~bad)
+    wg = median_filter(safe[good], size=(min(smooth_pings, good.size), 1), mode="nearest")
+    w = np.zeros_like(safe)
+    w[good] = wg
     s = uniform_filter1d(w, size=smooth_bins, axis=1, mode="nearest")
+
+    # Blanking: the configured zone, the ring-down of the median ping, saturated near field.
+    blank = int(np.searchsorted(r, blanking_m, side="left")) if blanking_m > 0 else 0
+    if auto_blanking:
+        blank = max(blank, _auto_blanking(s[good], coarse_fraction, smooth_bins))
+    blanking_used = float(r[blank - 1]) if 0 < blank <= B else 0.0
+    if blank >= B - sustain_bins:
+        return BottomPicks(
+            empty.altitude_m, empty.picked, empty.interpolated, ~bad, bad, blanking_used
+        )
+    saturated = safe >= sat_level * (1 - 1e-6)
+    sat_run = np.where(saturated.all(axis=1), B, np.argmin(saturated, axis=1))
+    blank_p = np.maximum(blank, np.where(saturated[:, 0], sat_run + smooth_bins, 0))
+    searchable = (r[None, :] >= min_range_m) & (bins[None, :] >= blank_p[:, None])
+
     floor = np.quantile(s, floor_quantile, axis=1)
     top = np.quantile(s, top_quantile, axis=1)
     coarse_thr = floor + coarse_fraction * (top - floor)
-    coarse, found = _first_sustained((s > coarse_thr[:, None]) & in_range, sustain_bins)
-    found &= top > floor
+    coarse, found = _first_sustained((s > coarse_thr[:, None]) & searchable, sustain_bins)
+    found &= (top > floor) & ~bad
 
-    # Water-column statistics between min_range_m and the coarse pick (minus the smoothing),
+    # Water-column statistics between the blanking and the coarse pick (minus the smoothing),
     # from the samples before range smoothing (independent), scaled to the smoothed signal.
-    column = in_range[None, :] & (bins[None, :] < (coarse - smooth_bins)[:, None])
+    column = searchable & (bins[None, :] < (coarse - smooth_bins)[:, None])
     enough = column.sum(axis=1) >= 3
     col = np.where(column & enough[:, None], w, np.nan)
     col[~enough] = 0.0
     mu = np.where(enough, np.nanmean(col, axis=1), floor)
     sd = np.nanstd(col, axis=1) / np.sqrt(smooth_bins)
     dark = np.where(s <= floor[:, None], s, np.nan)
+    dark[np.isnan(dark).all(axis=1)] = 0.0
     mad = 1.4826 * np.nanmedian(np.abs(dark - np.nanmedian(dark, axis=1)[:, None]), axis=1)
     sigma = np.where(enough, sd, mad)
     threshold = np.minimum(mu + noise_sigmas * sigma, coarse_thr)
 
-    above = (s > threshold[:, None]) & in_range[None, :] & (bins[None, :] <= coarse[:, None])
+    above = (s > threshold[:, None]) & searchable & (bins[None, :] <= coarse[:, None])
     first, fine_found = _first_sustained(above, min(sustain_bins, B))
     first = np.where(fine_found, np.minimum(first, coarse), coarse)
+
+    # The first searchable bin already above the threshold: the edge may lie in the blanking.
+    start = np.maximum(blank_p, int(np.searchsorted(r, min_range_m, side="left")))
+    rejected = found & (first <= start)
+    found &= ~rejected
 
     half = smooth_bins // 2
     window = np.clip(first[:, None] + np.arange(-half, half + 1)[None, :], 0, B - 1)
     # A single sample is noisier than the range-smoothed signal: its own threshold.
     raw_threshold = np.minimum(mu + noise_sigmas * sigma * np.sqrt(smooth_bins), coarse_thr)
-    raw_above = (w[rows[:, None], window] > raw_threshold[:, None]) & in_range[window]
+    raw_above = (w[rows[:, None], window] > raw_threshold[:, None]) & np.take_along_axis(
+        searchable, window, axis=1
+    )
     pick = np.where(raw_above.any(axis=1), window[rows, np.argmax(raw_above, axis=1)], first)
     # Leading edge of the picked bin (bins are range cells centred on range_m).
     edges = np.concatenate([[max(r[0] - 0.5 * (r[1] - r[0]), 0.0)], 0.5 * (r[1:] + r[:-1])])
-    altitude = np.maximum(edges[pick], min_range_m)
+    altitude = np.where(found, edges[pick], np.nan)
+    found &= altitude > 0
+    altitude = np.where(found, altitude, np.nan)
 
-    if not found.any():
-        raise ValueError(
-            "waterfall: no first bottom return found in any ping (no bins rise above the "
-            "water-column level)"
-        )
-    if not found.all():
-        altitude = np.interp(rows, rows[found], altitude[found])
-    if median_pings > 1 and P > 1:
-        size = min(median_pings, 2 * ((P - 1) // 2) + 1)
-        altitude = median_filter(altitude, size=size, mode="reflect")
-    return altitude
+    altitude = _running_nanmedian(altitude, found, median_pings)
+    interpolated = np.zeros(P, bool)
+    idx = np.flatnonzero(found)
+    if max_fill_pings > 0 and idx.size >= 2:
+        gaps = np.diff(idx) - 1
+        for a, b, g in zip(idx[:-1], idx[1:], gaps, strict=True):
+            if 0 < g <= max_fill_pings:
+                interpolated[a + 1 : b] = True
+        fill = interpolated & ~bad
+        interpolated = fill
+        altitude[fill] = np.interp(rows[fill], idx, altitude[idx])
+    return BottomPicks(altitude, found, interpolated, rejected, bad, blanking_used)

@@ -41,6 +41,7 @@ import ctypes
 import datetime as _dt
 import logging
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,8 +60,14 @@ from pyxtf import (
 from scipy.ndimage import median_filter
 
 from sss2bathy.geometry import attitude_to_rotation, rotation_to_attitude
-from sss2bathy.io.bottom import detect_first_return
+from sss2bathy.io.bottom import bad_pings, detect_first_return
 from sss2bathy.survey import SensorParams, SidescanLine, SurveyFormatError
+from sss2bathy.survey.model import (
+    ALTITUDE_DETECTED,
+    ALTITUDE_INTERPOLATED,
+    ALTITUDE_MISSING,
+    ALTITUDE_RECORDED,
+)
 from sss2bathy.utils.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -451,6 +458,9 @@ def read_xtf(
     max_nav_gap_s: float = 30.0,
     missing_attitude: str = "error",
     min_first_return_m: float = 0.0,
+    blanking_m: float = 0.0,
+    auto_blanking: bool = True,
+    altitude_tolerance_m: float | None = 1.0,
 ) -> tuple[SidescanLine, dict[str, Any]]:
     """Read one XTF file into a :class:`SidescanLine` in the survey's local ENU frame.
 
@@ -480,10 +490,20 @@ def read_xtf(
             attitude at all: heading, pitch and roll all exactly 0 on every ping);
             ``"track"`` takes the heading from the course made good and zero pitch and roll.
         min_first_return_m: the bottom detector ignores returns nearer than this.
+        blanking_m, auto_blanking: the transducer ring-down zone the detector never searches,
+            and whether to also estimate it from the near-field decay
+            (:func:`sss2bathy.io.bottom.detect_first_return`).
+        altitude_tolerance_m: refuse the file when the altimeter and the detector differ by more
+            than this on most pings having both (``None``: no check).
+
+    Pings whose samples on a side are constant, saturated or NaN get NaN intensities there
+    (no-hit). Where the altimeter is 0/NaN the altitude comes from the first bottom return
+    (or short-gap interpolation between returns), else stays NaN; ``line.altitude_source``
+    records which, and one WARNING per file counts every repair.
 
     Returns:
         ``(line, stats)``: ``stats`` holds the origin, CRS, counts of everything interpolated,
-        detected or skipped, and the recorded sample geometry. Nothing returned is NaN.
+        detected or skipped, and the recorded sample geometry.
 
     Raises:
         SurveyFormatError: one line naming the file (and the ping where there is one).
@@ -505,6 +525,12 @@ def read_xtf(
     ):
         if not val > 0:
             raise ValueError(f"{arg}: expected > 0, found {val}")
+    if altitude_tolerance_m is not None and not altitude_tolerance_m > 0:
+        raise ValueError(
+            f"altitude_tolerance_m: expected null or > 0 (m), found {altitude_tolerance_m}"
+        )
+    if not (math.isfinite(blanking_m) and blanking_m >= 0):
+        raise ValueError(f"blanking_m: expected a distance >= 0 (m), found {blanking_m}")
     if not path.is_file():
         raise SurveyFormatError(path, "file", "an existing XTF file", "missing file")
 
@@ -735,24 +761,82 @@ def read_xtf(
         1 for c in ports + stbds if abs(c.r_start - r0) > 1e-6 or abs(c.r_end - r1) > 1e-6
     )
 
+    # ---- unusable pings (constant, saturated or NaN over a whole side): no-hit (NaN)
+    flags = [bad_pings(intensity[:, side]) for side in (0, 1)]
+    ping_flags = {k: int((flags[0][k] | flags[1][k]).sum()) for k in flags[0]}
+    for side in (0, 1):
+        dead = flags[side]["nonfinite"] | flags[side]["constant"] | flags[side]["saturated"]
+        intensity[dead, side] = np.nan
+    if np.isnan(intensity).all(axis=(1, 2)).all():
+        raise SurveyFormatError(
+            path,
+            "sidescan samples",
+            "pings with usable samples",
+            f"every ping constant, saturated or NaN ({ping_flags})",
+        )
+
     # ---- altitude: altimeter where valid, first bottom return elsewhere
     alt_ok = np.isfinite(altitude) & (altitude > 0)
-    try:
-        first_return = detect_first_return(
-            intensity.astype(np.float64).mean(axis=1), range_m, min_range_m=min_first_return_m
-        )
-    except ValueError as exc:
-        if not alt_ok.all():
-            j = int(np.argmax(~alt_ok))
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # both sides NaN -> NaN: a bad ping
+        mean_wf = np.nanmean(intensity.astype(np.float64), axis=1)
+    picks = detect_first_return(
+        mean_wf,
+        range_m,
+        min_range_m=min_first_return_m,
+        blanking_m=blanking_m,
+        auto_blanking=auto_blanking,
+    )
+    first_return = picks.altitude_m
+    both = alt_ok & picks.picked
+    diff = altitude[both] - first_return[both]
+    if altitude_tolerance_m is not None and both.sum() >= 10:
+        off = np.abs(diff) > altitude_tolerance_m
+        if off.mean() > 0.5:
             raise SurveyFormatError(
                 path,
-                f"ping {ping_ids[j]}: altitude",
-                "an altimeter value or a visible first bottom return",
-                f"neither ({exc})",
-            ) from None
-        log.warning("%s: no first bottom return detected (%s); altimeter only", path.name, exc)
-        first_return = altitude.copy()
+                "SensorPrimaryAltitude",
+                f"altimeter and first bottom return within {altitude_tolerance_m} m on most "
+                "pings (data.survey.altitude_tolerance_m; null skips the check)",
+                f"{int(off.sum())} of {int(both.sum())} pings differ "
+                f"(median |difference| {float(np.median(np.abs(diff))):.2f} m, "
+                f"blanking {picks.blanking_m:.2f} m)",
+            )
     altitude = np.where(alt_ok, altitude, first_return)
+    source = np.full(len(altitude), ALTITUDE_MISSING, dtype=np.uint8)
+    source[alt_ok] = ALTITUDE_RECORDED
+    source[~alt_ok & picks.picked] = ALTITUDE_DETECTED
+    source[~alt_ok & picks.interpolated & np.isfinite(first_return)] = ALTITUDE_INTERPOLATED
+    if not np.isfinite(altitude).any():
+        raise SurveyFormatError(
+            path,
+            "altitude",
+            "an altimeter value or a visible first bottom return on some ping",
+            f"neither on any of {len(altitude)} pings",
+        )
+    repairs = {
+        "filled from the detector": int((source == ALTITUDE_DETECTED).sum()),
+        "interpolated between detected pings": int((source == ALTITUDE_INTERPOLATED).sum()),
+        "left missing (NaN, no altimeter point)": int((source == ALTITUDE_MISSING).sum()),
+        "first returns rejected (edge in the blanking zone)": int(picks.rejected.sum()),
+        "pings masked as no-hit (constant)": ping_flags["constant"],
+        "pings masked as no-hit (saturated)": ping_flags["saturated"],
+        "pings masked as no-hit (NaN samples)": ping_flags["nonfinite"],
+    }
+    if any(repairs.values()):
+        check = (
+            f"median |altimeter - first return| {float(np.median(np.abs(diff))):.2f} m "
+            f"on {diff.size} pings"
+            if diff.size
+            else "no ping with both altimeter and first return"
+        )
+        log.warning(
+            "%s: altitude/sample repairs: %s; blanking %.2f m; %s",
+            path.name,
+            ", ".join(f"{v} {k}" for k, v in repairs.items() if v),
+            picks.blanking_m,
+            check,
+        )
 
     line = SidescanLine(
         name=name or path.stem,
@@ -763,10 +847,8 @@ def read_xtf(
         intensity=intensity,
         range_m=range_m,
         sensor=sensor_params,
-        extras={
-            "first_return_m": first_return.astype(np.float32),
-            "altitude_detected": ~alt_ok,
-        },
+        extras={"first_return_m": first_return.astype(np.float32)},
+        altitude_source=source,
     )
     diff = altitude[alt_ok] - first_return[alt_ok]
     stats: dict[str, Any] = {
@@ -786,8 +868,16 @@ def read_xtf(
         "depth_interpolated": depth_interp,
         "attitude_source": attitude_source,
         "attitude_from_track": track_heading_pings,
-        "altitude_detected": int((~alt_ok).sum()),
+        "altitude_detected": int((source == ALTITUDE_DETECTED).sum()),
+        "altitude_interpolated": int((source == ALTITUDE_INTERPOLATED).sum()),
+        "altitude_missing": int((source == ALTITUDE_MISSING).sum()),
+        "first_return_rejected": int(picks.rejected.sum()),
+        "blanking_m": picks.blanking_m,
+        "pings_constant": ping_flags["constant"],
+        "pings_saturated": ping_flags["saturated"],
+        "pings_nonfinite": ping_flags["nonfinite"],
         "altimeter_minus_first_return_m": float(np.median(diff)) if diff.size else None,
+        "altimeter_vs_first_return_abs_m": float(np.median(np.abs(diff))) if diff.size else None,
         "samples_per_side": native,
         "n_bins": B,
         "range_window_m": [r0, r1],
@@ -810,7 +900,6 @@ _LOGGED = (
     "positions_from_ship",
     "depth_interpolated",
     "attitude_from_track",
-    "altitude_detected",
     "channels_off_window",
 )
 

@@ -29,6 +29,7 @@ from sss2bathy.io.grids import read_grid, shift_grid
 from sss2bathy.io.xtf import SENSOR_KEYS, read_xtf
 from sss2bathy.survey import BathyGrid, Survey, SurveyFormatError
 from sss2bathy.utils.atomic import (
+    default_dir_mode,
     file_sha256,
     folder_digest_problems,
     stable_hash,
@@ -41,7 +42,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULTS", "IMPORT_VERSION", "prepare_xtf_survey", "resolve_files", "resolve_splits"]
 
 # Bump when the import changes what it writes, so cached folders are rebuilt.
-IMPORT_VERSION = 1
+IMPORT_VERSION = 2
 
 DEFAULTS: dict[str, Any] = {
     "kind": "xtf",
@@ -67,6 +68,9 @@ DEFAULTS: dict[str, Any] = {
     "max_nav_gap_s": 30.0,
     "missing_attitude": "error",
     "min_first_return_m": 0.0,
+    "blanking_m": 0.0,
+    "auto_blanking": True,
+    "altitude_tolerance_m": 1.0,
 }
 
 
@@ -160,6 +164,7 @@ def _replace_folder(survey: Survey, folder: Path) -> None:
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
     try:
+        os.chmod(tmp, default_dir_mode())  # mkdtemp makes it 0o700 whatever the umask
         survey.save(tmp)
         write_folder_digest(tmp)
         old = None
@@ -244,6 +249,13 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
         "max_nav_gap_s": float(merged["max_nav_gap_s"]),
         "missing_attitude": str(merged["missing_attitude"]),
         "min_first_return_m": float(merged["min_first_return_m"]),
+        "blanking_m": float(merged["blanking_m"]),
+        "auto_blanking": bool(merged["auto_blanking"]),
+        "altitude_tolerance_m": (
+            None
+            if merged["altitude_tolerance_m"] is None
+            else float(merged["altitude_tolerance_m"])
+        ),
     }
     sensor = {k: merged[k] for k in SENSOR_KEYS}
     origin: dict[str, Any] | None = None

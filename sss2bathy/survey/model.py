@@ -27,6 +27,9 @@ from sss2bathy.utils.atomic import atomic_path, atomic_write_text
 
 FORMAT_VERSION = 1
 
+# Per-ping origin of ``SidescanLine.altitude_m`` (``altitude_source``).
+ALTITUDE_RECORDED, ALTITUDE_DETECTED, ALTITUDE_INTERPOLATED, ALTITUDE_MISSING = 0, 1, 2, 3
+
 
 @dataclass(frozen=True)
 class SensorParams:
@@ -80,6 +83,9 @@ class SidescanLine:
         sensor: sensor parameters.
         extras: optional named per-ping/per-bin arrays (e.g. the simulator's ground truth
             ``true_n_lat (P, 2, B)``, ``true_points (P, 2, B, 3)``); saved with the line.
+        altitude_source: optional ``(P,)`` uint8 origin of each altitude: ``ALTITUDE_RECORDED``
+            (altimeter), ``_DETECTED`` (first bottom return), ``_INTERPOLATED`` (between
+            detected pings) or ``_MISSING`` (altitude NaN); saved with the line.
     """
 
     name: str
@@ -91,8 +97,11 @@ class SidescanLine:
     range_m: np.ndarray
     sensor: SensorParams = field(default_factory=SensorParams)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    altitude_source: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.altitude_source is not None:
+            self.altitude_source = np.asarray(self.altitude_source)
         self.time_s = np.asarray(self.time_s, dtype=np.float64)
         self.position = np.asarray(self.position, dtype=np.float64)
         self.rotation = np.asarray(self.rotation, dtype=np.float64)
@@ -160,6 +169,16 @@ class SidescanLine:
         B = self.range_m.shape[0]
         if self.intensity.shape != (P, 2, B):
             raise SurveyFormatError(src, "intensity", f"shape ({P}, 2, {B})", self.intensity.shape)
+        if self.altitude_source is not None:
+            src_ = self.altitude_source
+            if src_.shape != (P,) or not np.issubdtype(src_.dtype, np.integer):
+                raise SurveyFormatError(src, "altitude_source", f"({P},) integers", src_.shape)
+            if np.any((src_ < 0) | (src_ > ALTITUDE_MISSING)):
+                raise SurveyFormatError(src, "altitude_source", "codes 0..3", np.unique(src_))
+            if np.any((src_ == ALTITUDE_MISSING) != ~np.isfinite(self.altitude_m)):
+                raise SurveyFormatError(
+                    src, "altitude_source", "code 3 exactly where altitude_m is NaN", "a mismatch"
+                )
         for key, arr in self.extras.items():
             if arr.shape[:1] != (P,):
                 raise SurveyFormatError(
@@ -176,6 +195,8 @@ class SidescanLine:
             "intensity": self.intensity,
             "range_m": self.range_m,
         }
+        if self.altitude_source is not None:
+            arrays["altitude_source"] = self.altitude_source.astype(np.uint8)
         arrays.update({f"extra__{k}": v for k, v in self.extras.items()})
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
@@ -204,6 +225,7 @@ class SidescanLine:
                 name=name,
                 sensor=sensor,
                 extras=extras,
+                altitude_source=arrays.get("altitude_source"),
                 **{k: arrays[k] for k in required},
             )
         except SurveyFormatError as err:

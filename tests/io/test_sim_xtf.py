@@ -37,7 +37,7 @@ def test_detector_on_simulated_survey(sim_survey):
     errors = []
     for line in sim_survey.lines:
         dr = float(line.range_m[1] - line.range_m[0])
-        est = detect_first_return(line.intensity.mean(axis=1), line.range_m)
+        est = detect_first_return(line.intensity.mean(axis=1), line.range_m).altitude_m
         errors.append((est - line.altitude_m) / dr)
     err = np.abs(np.concatenate(errors))
     assert np.mean(err <= 2.0) >= 0.9

@@ -60,7 +60,7 @@ def test_round_trip_synthetic_line(tmp_path, line, origin):
     assert back.sensor.frequency_hz == pytest.approx(line.sensor.frequency_hz, rel=1e-6)
     assert back.sensor.sound_speed_mps == pytest.approx(1500.0)
     assert stats["altitude_detected"] == 0 and stats["nav_interpolated"] == 0
-    assert not back.extras["altitude_detected"].any()
+    assert np.all(back.altitude_source == 0)
     # The detector agrees with the altimeter on these simulated pings (within 2 bins).
     dr = float(line.range_m[1] - line.range_m[0])
     assert np.abs(back.extras["first_return_m"] - line.altitude_m).max() <= 2 * dr
@@ -153,7 +153,7 @@ def test_missing_altitude_comes_from_the_detector(tmp_path, line, origin):
     true = 9.0 + 2.0 * np.sin(0.25 * line.time_s)
     dr = float(line.range_m[1] - line.range_m[0])
     assert stats["altitude_detected"] == 10
-    assert back.extras["altitude_detected"][10:20].all()
+    assert np.all(back.altitude_source[10:20] == 1) and np.all(back.altitude_source[:10] == 0)
     assert np.all(np.isfinite(back.altitude_m))
     assert np.abs(back.altitude_m[10:20] - true[10:20]).max() <= 2 * dr
     np.testing.assert_allclose(back.altitude_m[:10], line.altitude_m[:10], atol=1e-5)
@@ -458,15 +458,76 @@ def test_writer_clips_negative_intensity_and_geographic_needs_crs(tmp_path, line
         write_xtf(line, tmp_path / "b.xtf", {"crs": None}, nav_units="latlon")
 
 
-def test_missing_altitude_without_bottom_echo_names_ping(tmp_path, line, origin):
-    line.intensity[:] = 0.01  # no contrast anywhere: nothing to detect
-    line.altitude_m[7] = np.nan
+def test_no_usable_sidescan_is_refused(tmp_path, line, origin):
+    line.intensity[:] = 0.01  # no contrast anywhere: every ping constant
     path = written(tmp_path, line, origin)
-    with pytest.raises(SurveyFormatError, match=r"L0\.xtf.*ping 7: altitude.*neither"):
+    with pytest.raises(SurveyFormatError, match=r"L0\.xtf.*sidescan samples.*constant"):
         read_xtf(path, origin=origin)
-    line.altitude_m[7] = 9.0
-    back, _ = read_xtf(written(tmp_path, line, origin, name="L1.xtf"), origin=origin)
-    np.testing.assert_allclose(back.extras["first_return_m"], back.altitude_m)
+
+
+def test_dead_pings_are_no_hit_and_their_missing_altitude_stays_nan(tmp_path, line, origin, caplog):
+    line.intensity[5:8] = 0.01  # three dead pings (both sides constant)
+    line.intensity[20, 1, 10:] = line.intensity.max()  # starboard saturated on one ping
+    line.altitude_m[5:7] = np.nan
+    path = written(tmp_path, line, origin)
+    with caplog.at_level(logging.WARNING):
+        back, stats = read_xtf(path, origin=origin)
+    assert np.isnan(back.intensity[5:8]).all() and np.isnan(back.intensity[20, 1]).all()
+    assert np.isfinite(back.intensity[20, 0]).all()
+    assert stats["pings_constant"] == 3 and stats["pings_saturated"] == 1
+    assert np.isnan(back.altitude_m[5:7]).all() and np.all(back.altitude_source[5:7] == 3)
+    assert back.altitude_m[7] == pytest.approx(line.altitude_m[7], abs=1e-5)
+    assert stats["altitude_missing"] == 2
+    warning = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warning) == 1 and "L0.xtf" in warning[0]
+    assert "2 left missing" in warning[0] and "3 pings masked as no-hit (constant)" in warning[0]
+
+
+def ringdown_line(make_line, make_pings, seed=0):
+    """An AUV-like line: 512 bins over 40 m, altitude 3.8-6.8 m, a saturated 1.5 m ring-down."""
+    ln = make_line(n_pings=80, n_bins=512, seed=seed)
+    truth = 5.3 + 1.5 * np.sin(0.4 * ln.time_s)
+    ln.altitude_m = truth.astype(np.float32)
+    ln.intensity = make_pings(truth, ln.range_m.astype(np.float64), seed=seed)
+    ring = 10.0 * np.exp(-ln.range_m / 0.25)
+    ln.intensity = np.minimum(ln.intensity + ring[None, None, :], 8.0).astype(np.float32)
+    return ln, truth
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_zero_and_nan_altitude_repaired_within_20cm_despite_ringdown(
+    tmp_path, make_line, make_pings, origin, xtf_patch, seed, caplog
+):
+    ln, truth = ringdown_line(make_line, make_pings, seed)
+    ln.altitude_m[10:30] = np.nan  # written as 0 (missing)
+    path = written(tmp_path, ln, origin)
+    patch_ping, _, _ = xtf_patch
+    for k in range(40, 50):
+        patch_ping(path, k, SensorPrimaryAltitude=float("nan"))
+    with caplog.at_level(logging.WARNING):
+        back, stats = read_xtf(path, origin=origin)
+    repaired = np.r_[10:30, 40:50]
+    assert np.all(back.altitude_source[repaired] == 1)
+    assert np.abs(back.altitude_m[repaired] - truth[repaired]).max() <= 0.2
+    assert np.all(back.altitude_m > 0)
+    assert 1.0 <= stats["blanking_m"] <= 2.5 and stats["altitude_detected"] == 30
+    assert stats["altimeter_vs_first_return_abs_m"] <= 0.1
+    assert "30 filled from the detector" in caplog.text and "median |altimeter" in caplog.text
+
+
+def test_altimeter_and_detector_disagreeing_on_most_pings_is_refused(
+    tmp_path, make_line, make_pings, origin
+):
+    ln, truth = ringdown_line(make_line, make_pings)
+    ln.altitude_m = (truth + 3.0).astype(np.float32)  # altimeter off by 3 m
+    path = written(tmp_path, ln, origin)
+    with pytest.raises(SurveyFormatError) as err:
+        read_xtf(path, origin=origin)
+    msg = str(err.value)
+    assert "\n" not in msg and "L0.xtf" in msg and "SensorPrimaryAltitude" in msg
+    assert "80 of 80 pings differ" in msg and "altitude_tolerance_m" in msg
+    back, _ = read_xtf(path, origin=origin, altitude_tolerance_m=None)
+    assert np.all(back.altitude_source == 0)
 
 
 def test_attitude_packets_replace_missing_ping_attitude(tmp_path, line, origin, xtf_patch):
