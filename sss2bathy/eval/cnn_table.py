@@ -2,6 +2,15 @@
 
 Rows are ``{name: {"mae", "rel", "rmse", "delta1", "delta2", "delta3"}}`` with the deltas in
 percent (as :func:`sss2bathy.metrics.NormalMetrics` computes them).
+
+Each of our test sets can carry a **constant-prediction row**: the training lines' mean
+n_lat predicted everywhere, scored with the same metrics on the same valid bins
+(``constant_rows``, ``{name: {..., "value": the constant}}``). The ``skill`` column is
+CNN MAE / constant MAE (< 1: the CNN beats a constant). They are stored in a run's
+``metrics.json`` as ``test/{name}/constant/{metric}`` (:func:`constant_rows_from_metrics`).
+
+The per-line, per-side mean bias of the predictions is written by :func:`write_cnn_bias`
+(``cnn_bias.csv``, ``cnn_bias_range.csv``, ``cnn_bias.png``).
 """
 
 from __future__ import annotations
@@ -9,17 +18,24 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from sss2bathy.eval.paper_numbers import CNN_TABLE, PAPER_LABEL
-from sss2bathy.utils.atomic import atomic_write_text
+from sss2bathy.utils.atomic import atomic_path, atomic_write_text
 
 COLUMNS = ("mae", "rel", "rmse", "delta1", "delta2", "delta3")
 HEADERS = ("MAE", "REL", "RMSE", "δ<1.05 (%)", "δ<1.05² (%)", "δ<1.05³ (%)")
 OURS_LABEL = "ours (synthetic survey)"
 MD_NAME = "cnn_table.md"
 CSV_NAME = "cnn_table.csv"
+BIAS_CSV_NAME = "cnn_bias.csv"
+BIAS_RANGE_CSV_NAME = "cnn_bias_range.csv"
+BIAS_PNG_NAME = "cnn_bias.png"
+CNN_PREDICTOR = "CNN"
+CONSTANT_KEY = "constant"
+SIDES = ("port", "starboard")
 
 
 def _fmt(key: str, value: float) -> str:
@@ -47,55 +63,258 @@ def _check_rows(rows: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, 
     return out
 
 
-def cnn_table_markdown(rows: Mapping[str, Mapping[str, float]]) -> str:
-    """Markdown table: our rows, then the paper's rows labelled as measured on its own data."""
+def constant_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """Group ``test/{name}/constant/{metric}`` values into constant-prediction rows
+    ``{name: {metric: value, "value": constant}}``; rows missing a metric are left out."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        parts = str(key).split("/")
+        if len(parts) == 4 and parts[0] == "test" and parts[2] == CONSTANT_KEY:
+            rows.setdefault(parts[1], {})[parts[3]] = float(value)
+    need = {*COLUMNS, "value"}
+    return {k: v for k, v in rows.items() if need <= set(v)}
+
+
+def constant_metric_keys(name: str, row: Mapping[str, float]) -> dict[str, float]:
+    """The ``metrics.json`` keys of one constant row (the inverse of
+    :func:`constant_rows_from_metrics`)."""
+    return {f"test/{name}/{CONSTANT_KEY}/{k}": float(row[k]) for k in (*COLUMNS, "value")}
+
+
+def _check_constant(
+    constant_rows: Mapping[str, Mapping[str, float]] | None, ours: Mapping[str, Any]
+) -> dict[str, dict[str, float]]:
+    if constant_rows is None:
+        return {}
+    out = _check_rows(constant_rows) if constant_rows else {}
+    for name, row in out.items():
+        if name not in ours:
+            raise ValueError(
+                f"constant_rows['{name}']: expected one of the CNN rows {sorted(ours)}, found "
+                "a test set without a CNN row"
+            )
+        value = constant_rows[name].get("value")
+        if not isinstance(value, int | float) or not math.isfinite(float(value)):
+            raise ValueError(
+                f"constant_rows['{name}']['value']: expected the finite constant, found {value!r}"
+            )
+        row["value"] = float(value)
+    return out
+
+
+def _skill(ours: Mapping[str, float], constant: Mapping[str, float] | None) -> float:
+    if constant is None or not constant["mae"] > 0:
+        return math.nan
+    return ours["mae"] / constant["mae"]
+
+
+def _table_rows(
+    rows: Mapping[str, Mapping[str, float]],
+    constant_rows: Mapping[str, Mapping[str, float]] | None,
+) -> list[tuple[str, str, str, dict[str, float], float]]:
+    """``(source, data set, predictor, metrics, skill)`` in table order."""
     ours = _check_rows(rows)
+    const = _check_constant(constant_rows, ours)
+    out = []
+    for name, metrics in ours.items():
+        out.append((OURS_LABEL, name, CNN_PREDICTOR, metrics, _skill(metrics, const.get(name))))
+        if name in const:
+            c = const[name]
+            label = f"{CONSTANT_KEY} {c['value']:+.4f} (training mean)"
+            out.append((OURS_LABEL, name, label, c, 1.0))
+    for name, metrics in CNN_TABLE.items():
+        out.append((PAPER_LABEL, name, CNN_PREDICTOR, dict(metrics), math.nan))
+    return out
+
+
+def cnn_table_markdown(
+    rows: Mapping[str, Mapping[str, float]],
+    constant_rows: Mapping[str, Mapping[str, float]] | None = None,
+) -> str:
+    """Markdown table: our rows (each followed by its constant-prediction row when given),
+    then the paper's rows labelled as measured on its own data."""
+    table = _table_rows(rows, constant_rows)
     lines = [
         '# Normal CNN: quantitative results (paper Table "Quantitative Results For CNN")',
         "",
         "Errors are on n_lat (lower is better); accuracies are % of valid bins with "
-        "max((n+1)/(n_GT+1), (n_GT+1)/(n+1)) below the threshold (higher is better).",
+        "max((n+1)/(n_GT+1), (n_GT+1)/(n+1)) below the threshold (higher is better). "
+        "*constant* rows predict the training lines' mean n_lat everywhere, scored on the "
+        "same valid bins; skill = CNN MAE / constant MAE (below 1: the CNN beats a constant).",
         f"Rows labelled *{PAPER_LABEL}* are the published numbers on the paper's real "
         "Datasets I/II; ours are on our synthetic surveys: for orientation, not a like-for-like "
         "comparison.",
         "",
-        "| source | data set | " + " | ".join(HEADERS) + " |",
-        "|---|---|" + "---:|" * len(HEADERS),
+        "| source | data set | predictor | " + " | ".join(HEADERS) + " | skill |",
+        "|---|---|---|" + "---:|" * (len(HEADERS) + 1),
     ]
-    for source, table in ((OURS_LABEL, ours), (PAPER_LABEL, CNN_TABLE)):
-        for name, metrics in table.items():
-            cells = " | ".join(_fmt(k, float(metrics[k])) for k in COLUMNS)
-            lines.append(f"| {source} | {name} | {cells} |")
+    for source, name, predictor, metrics, skill in table:
+        cells = " | ".join(_fmt(k, float(metrics[k])) for k in COLUMNS)
+        skill_cell = f"{skill:.2f}" if math.isfinite(skill) else "n/a"
+        lines.append(f"| {source} | {name} | {predictor} | {cells} | {skill_cell} |")
     return "\n".join(lines) + "\n"
 
 
-def cnn_table_csv(rows: Mapping[str, Mapping[str, float]]) -> str:
-    """CSV with columns ``source, dataset, mae, rel, rmse, delta1, delta2, delta3``."""
-    ours = _check_rows(rows)
+def cnn_table_csv(
+    rows: Mapping[str, Mapping[str, float]],
+    constant_rows: Mapping[str, Mapping[str, float]] | None = None,
+) -> str:
+    """CSV with columns ``source, dataset, predictor, mae, rel, rmse, delta1, delta2,
+    delta3, skill`` (``predictor``: ``CNN`` or ``constant``; ``constant_value`` holds the
+    constant; ``skill`` = CNN MAE / constant MAE, empty where undefined)."""
+    table = _table_rows(rows, constant_rows)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(("source", "dataset", *COLUMNS))
-    for source, table in ((OURS_LABEL, ours), (PAPER_LABEL, CNN_TABLE)):
-        for name, metrics in table.items():
-            writer.writerow((source, name, *(repr(float(metrics[k])) for k in COLUMNS)))
+    writer.writerow(("source", "dataset", "predictor", *COLUMNS, "skill", "constant_value"))
+    for source, name, predictor, metrics, skill in table:
+        kind = CONSTANT_KEY if predictor.startswith(CONSTANT_KEY) else predictor
+        value = repr(float(metrics["value"])) if "value" in metrics else ""
+        writer.writerow(
+            (
+                source,
+                name,
+                kind,
+                *(repr(float(metrics[k])) for k in COLUMNS),
+                repr(skill) if math.isfinite(skill) else "",
+                value,
+            )
+        )
     return buf.getvalue()
 
 
 def write_cnn_table(
-    rows: Mapping[str, Mapping[str, float]], out_dir: str | Path
+    rows: Mapping[str, Mapping[str, float]],
+    out_dir: str | Path,
+    constant_rows: Mapping[str, Mapping[str, float]] | None = None,
 ) -> tuple[Path, Path]:
     """Write ``cnn_table.md`` and ``cnn_table.csv`` into ``out_dir`` (atomically).
 
     Args:
         rows: ``{data set name: {mae, rel, rmse, delta1, delta2, delta3}}`` (deltas in %).
         out_dir: folder, created if needed.
+        constant_rows: the constant prediction's rows of the same data sets, each with
+            ``value`` (the constant); None: no constant rows.
 
     Returns:
         ``(markdown path, csv path)``.
     """
-    markdown, table = cnn_table_markdown(rows), cnn_table_csv(rows)
+    markdown = cnn_table_markdown(rows, constant_rows)
+    table = cnn_table_csv(rows, constant_rows)
     out = Path(out_dir)
     md_path, csv_path = out / MD_NAME, out / CSV_NAME
     atomic_write_text(md_path, markdown)
     atomic_write_text(csv_path, table)
     return md_path, csv_path
+
+
+# ------------------------------------------------------------------------- bias
+LINE_COLUMNS = ("dataset", "line", "side", "count", "mean_truth", "mean_pred", "bias")
+RANGE_COLUMNS = (
+    "dataset", "side", "range_bin", "bin_lo", "bin_hi", "count", "mean_truth", "mean_pred",
+    "bias",
+)  # fmt: skip
+
+
+def _check_bias_rows(rows: Any, columns: Sequence[str], name: str) -> list[dict[str, Any]]:
+    if not isinstance(rows, Sequence) or isinstance(rows, str):
+        raise ValueError(f"{name}: expected a list of rows, found {type(rows).__name__}")
+    for i, row in enumerate(rows):
+        missing = [c for c in columns if c not in row]
+        if missing:
+            raise ValueError(f"{name}[{i}]: expected keys {list(columns)}, missing {missing}")
+    return [dict(r) for r in rows]
+
+
+def _rows_csv(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow(
+            [repr(float(row[c])) if isinstance(row[c], float) else row[c] for c in columns]
+        )
+    return buf.getvalue()
+
+
+def plot_cnn_bias(
+    line_rows: Sequence[Mapping[str, Any]], range_rows: Sequence[Mapping[str, Any]], path: Path
+) -> Path:
+    """``cnn_bias.png``: per test set (a row of panels), the mean bias of every line x side
+    as bars with the mean truth as dots, and the bias against range per side."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sets = list(dict.fromkeys(r["dataset"] for r in line_rows))
+    fig, axes = plt.subplots(
+        len(sets), 2, figsize=(12, 3.2 * len(sets)), squeeze=False,
+        gridspec_kw={"width_ratios": [2, 1]},
+    )  # fmt: skip
+    colours = {"port": "tab:red", "starboard": "tab:green"}
+    for ax_bar, ax_rng, name in zip(axes[:, 0], axes[:, 1], sets, strict=True):
+        rows = [r for r in line_rows if r["dataset"] == name]
+        lines = list(dict.fromkeys(r["line"] for r in rows))
+        width = 0.4
+        for k, side in enumerate(SIDES):
+            xs = [lines.index(r["line"]) + (k - 0.5) * width for r in rows if r["side"] == side]
+            ax_bar.bar(
+                xs, [r["bias"] for r in rows if r["side"] == side], width,
+                color=colours[side], alpha=0.7, label=f"{side}: mean prediction - mean truth",
+            )  # fmt: skip
+            ax_bar.plot(
+                xs, [r["mean_truth"] for r in rows if r["side"] == side], "o", ms=3,
+                color="k" if k == 0 else "0.5", label=f"{side}: mean truth",
+            )  # fmt: skip
+        ax_bar.axhline(0, color="k", lw=0.5)
+        ax_bar.set_xticks(range(len(lines)), lines, rotation=60, fontsize=7)
+        ax_bar.set_ylabel("n_lat")
+        ax_bar.set_title(f"{name}: per-line, per-side mean bias", fontsize=9)
+        ax_bar.legend(fontsize=6, ncol=2)
+        for side in SIDES:
+            rr = [r for r in range_rows if r["dataset"] == name and r["side"] == side]
+            centres = [(r["bin_lo"] + r["bin_hi"]) / 2 for r in rr]
+            ax_rng.plot(centres, [r["bias"] for r in rr], "-o", ms=3, color=colours[side],
+                        label=f"{side} bias")  # fmt: skip
+            ax_rng.plot(centres, [r["mean_truth"] for r in rr], ":", color=colours[side],
+                        label=f"{side} mean truth")  # fmt: skip
+        ax_rng.axhline(0, color="k", lw=0.5)
+        ax_rng.set_xlabel("bin across track (slant range grows with it)")
+        ax_rng.set_title(f"{name}: bias vs range", fontsize=9)
+        ax_rng.legend(fontsize=6)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def write_cnn_bias(
+    line_rows: Sequence[Mapping[str, Any]],
+    range_rows: Sequence[Mapping[str, Any]],
+    out_dir: str | Path,
+) -> tuple[Path, Path, Path]:
+    """Write ``cnn_bias.csv`` (one row per test set x line x side: ``dataset, line, side,
+    count, mean_truth, mean_pred, bias``), ``cnn_bias_range.csv`` (bias against bins across
+    track per side) and the figure ``cnn_bias.png`` into ``out_dir``.
+
+    ``side`` is ``port`` or ``starboard``; ``count`` the valid pixels summed (as windows
+    count them); bias = mean prediction - mean truth.
+    """
+    lines = _check_bias_rows(line_rows, LINE_COLUMNS, "line_rows")
+    ranged = _check_bias_rows(range_rows, RANGE_COLUMNS, "range_rows")
+    if not lines:
+        raise ValueError(
+            "line_rows: expected at least one (line, side) with valid bins, found none"
+        )
+    for name, rows in (("line_rows", lines), ("range_rows", ranged)):
+        bad = sorted({str(r["side"]) for r in rows} - set(SIDES))
+        if bad:
+            raise ValueError(f"{name}: expected side in {list(SIDES)}, found {bad}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = (out / BIAS_CSV_NAME, out / BIAS_RANGE_CSV_NAME, out / BIAS_PNG_NAME)
+    atomic_write_text(paths[0], _rows_csv(lines, LINE_COLUMNS))
+    atomic_write_text(paths[1], _rows_csv(ranged, RANGE_COLUMNS))
+    plot_cnn_bias(lines, ranged, paths[2])
+    return paths

@@ -14,6 +14,7 @@ clamped at ``EPS`` so a value at -1 (a wall facing the sonar) cannot divide by z
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torchmetrics import Metric, MetricCollection
 
@@ -144,3 +145,140 @@ def NormalMetrics(prefix: str | None = None) -> MetricCollection:  # noqa: N802 
         prefix=prefix,
         compute_groups=False,
     )
+
+
+# ------------------------------------------------------------------ baseline and bias
+def masked_mean(values, masks) -> float:
+    """Mean of ``values`` over their valid bins, pooled over a sequence of arrays.
+
+    This is the constant-prediction baseline's value: the training lines' mean n_lat.
+
+    Args:
+        values: sequence of arrays (numpy or torch, any shape), e.g. each training line's
+            ``(P, 2, B)`` n_lat.
+        masks: sequence of bool arrays of the same shapes (True = valid).
+
+    Raises ``ValueError`` on mismatched shapes, non-bool masks or no valid bin at all.
+    """
+    values, masks = list(values), list(masks)
+    if not values or len(values) != len(masks):
+        raise ValueError(
+            f"values, masks: expected two equally long non-empty sequences, found "
+            f"{len(values)} and {len(masks)}"
+        )
+    total, count = 0.0, 0
+    for i, (v, m) in enumerate(zip(values, masks, strict=True)):
+        v, m = np.asarray(v, dtype=np.float64), np.asarray(m)
+        if m.dtype != bool or m.shape != v.shape:
+            raise ValueError(
+                f"masks[{i}]: expected a bool array of shape {v.shape}, found {m.dtype} {m.shape}"
+            )
+        sel = v[m]
+        if not np.isfinite(sel).all():
+            raise ValueError(f"values[{i}]: expected finite values at valid bins, found NaN/inf")
+        total += float(sel.sum())
+        count += int(m.sum())
+    if count == 0:
+        raise ValueError("masks: expected at least one valid bin, found none")
+    return total / count
+
+
+class LineSideBias:
+    """Running sums of prediction and truth per (line, side, bin across track).
+
+    ``update`` takes a batch of windows (``pred, target, mask [B, 1, H, W]`` with the
+    windows' ``line, side, bin_start [B]``) and adds, for every bin across track, the sums
+    of the prediction and of the truth over the valid pixels and their count. Windows are
+    counted as they come (overlapping windows count a bin once per window, as the table's
+    metrics do). :meth:`line_side_rows` and :meth:`range_rows` turn the sums into means.
+    """
+
+    def __init__(self) -> None:
+        # (line, side) -> [sum_pred (n,), sum_true (n,), count (n,)] float64 over bins
+        self.sums: dict[tuple[int, int], list] = {}
+
+    def update(
+        self,
+        pred: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor,
+        line: torch.Tensor,
+        side: torch.Tensor,
+        bin_start: torch.Tensor,
+    ) -> None:
+        shape = tuple(pred.shape)
+        if len(shape) != 4 or shape[1] != 1:
+            raise ValueError(f"pred: expected shape [B, 1, H, W], found {shape}")
+        if tuple(target.shape) != shape or tuple(mask.shape) != shape:
+            raise ValueError(
+                f"target, mask: expected pred's shape {shape}, found "
+                f"{tuple(target.shape)} and {tuple(mask.shape)}"
+            )
+        if mask.dtype != torch.bool:
+            raise ValueError(f"mask: expected dtype torch.bool, found {mask.dtype}")
+        for name, t in (("line", line), ("side", side), ("bin_start", bin_start)):
+            if tuple(t.shape) != (shape[0],):
+                raise ValueError(f"{name}: expected shape ({shape[0]},), found {tuple(t.shape)}")
+        # sums over the pings of each window: (B, W) per bin across track
+        p = torch.where(mask, pred.detach(), 0).to(torch.float64)[:, 0].sum(1).cpu().numpy()
+        g = torch.where(mask, target.detach(), 0).to(torch.float64)[:, 0].sum(1).cpu().numpy()
+        c = mask[:, 0].sum(1).to(torch.float64).cpu().numpy()
+        width = shape[3]
+        for i, (li, si, b0) in enumerate(
+            zip(line.tolist(), side.tolist(), bin_start.tolist(), strict=True)
+        ):
+            acc = self.sums.get((int(li), int(si)))
+            need = int(b0) + width
+            if acc is None:
+                acc = [np.zeros(need), np.zeros(need), np.zeros(need)]
+            elif len(acc[0]) < need:
+                acc = [np.pad(a, (0, need - len(a))) for a in acc]
+            self.sums[(int(li), int(si))] = acc
+            for a, v in zip(acc, (p[i], g[i], c[i]), strict=True):
+                a[int(b0) : need] += v
+
+    def line_side_rows(self) -> list[dict[str, float]]:
+        """One row per (line, side) with valid bins: ``line, side, count, mean_truth,
+        mean_pred, bias`` (bias = mean prediction - mean truth), sorted by line and side."""
+        rows = []
+        for (li, si), (p, g, c) in sorted(self.sums.items()):
+            n = float(c.sum())
+            if n == 0:
+                continue
+            mp, mt = float(p.sum()) / n, float(g.sum()) / n
+            rows.append(
+                {"line": li, "side": si, "count": n, "mean_truth": mt, "mean_pred": mp,
+                 "bias": mp - mt}
+            )  # fmt: skip
+        return rows
+
+    def range_rows(self, n_range_bins: int = 16) -> list[dict[str, float]]:
+        """Bias against range: the bins across track pooled over lines per side and grouped
+        into ``n_range_bins`` equal groups of bin index (slant range grows with it).
+
+        Rows ``side, range_bin, bin_lo, bin_hi, count, mean_truth, mean_pred, bias``
+        (bins ``[bin_lo, bin_hi)``); groups without valid pixels are left out.
+        """
+        if not isinstance(n_range_bins, int) or isinstance(n_range_bins, bool) or n_range_bins < 1:
+            raise ValueError(f"n_range_bins: expected an integer >= 1, found {n_range_bins!r}")
+        if not self.sums:
+            return []
+        n_bins = max(len(a[0]) for a in self.sums.values())
+        edges = np.unique(np.linspace(0, n_bins, min(n_range_bins, n_bins) + 1).round()).astype(int)
+        rows = []
+        for side in (0, 1):
+            tot = np.zeros((3, n_bins))
+            for (_, si), acc in self.sums.items():
+                if si == side:
+                    for k in range(3):
+                        tot[k, : len(acc[k])] += acc[k]
+            for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+                p, g, c = tot[:, lo:hi].sum(1)
+                if c == 0:
+                    continue
+                rows.append(
+                    {"side": side, "range_bin": j, "bin_lo": int(lo), "bin_hi": int(hi),
+                     "count": float(c), "mean_truth": g / c, "mean_pred": p / c,
+                     "bias": (p - g) / c}
+                )  # fmt: skip
+        return rows

@@ -94,3 +94,68 @@ def test_prefix_empty_mask_and_validation():
         NormalMAE().update(zeros, zeros[..., :2], torch.ones(1, 1, 4, 4, dtype=torch.bool))
     with pytest.raises(ValueError, match="threshold"):
         NormalDeltaAccuracy(threshold=0.9)
+
+
+# ------------------------------------------------------------ baseline and bias
+def test_masked_mean_pools_valid_bins_only():
+    from sss2bathy.metrics.normal import masked_mean
+
+    a = np.array([[0.1, 0.3], [np.nan, 5.0]])
+    ma = np.array([[True, True], [False, False]])
+    b = np.array([0.4])
+    assert masked_mean([a, b], [ma, np.array([True])]) == pytest.approx((0.1 + 0.3 + 0.4) / 3)
+    with pytest.raises(ValueError, match=r"masks\[0\].*bool"):
+        masked_mean([a], [ma.astype(int)])
+    with pytest.raises(ValueError, match="no.*found none|at least one valid bin"):
+        masked_mean([a], [np.zeros_like(ma)])
+    with pytest.raises(ValueError, match=r"values\[0\].*finite"):
+        masked_mean([a], [np.ones_like(ma)])
+
+
+def test_line_side_bias_against_numpy_reference():
+    from sss2bathy.metrics.normal import LineSideBias
+
+    rng = np.random.default_rng(3)
+    n_bins, h, w = 12, 4, 8
+    # two "lines" x two sides of full waterfalls, cut into windows at bin 0 and 4
+    truth = rng.normal(0, 0.1, (2, 2, 2 * h, n_bins))
+    pred = truth + 0.05 + 0.01 * np.arange(n_bins)  # bias growing with range
+    valid = rng.random(truth.shape) > 0.3
+    acc = LineSideBias()
+    expect = np.zeros((2, 2, 3, n_bins))  # line, side, (pred, truth, count), bin
+    for li in range(2):
+        for si in range(2):
+            for p0 in (0, h):
+                for b0 in (0, 4):
+                    sl = (li, si, slice(p0, p0 + h), slice(b0, b0 + w))
+                    m = valid[sl]
+                    acc.update(
+                        torch.tensor(pred[sl][None, None]),
+                        torch.tensor(truth[sl][None, None]),
+                        torch.tensor(m[None, None]),
+                        torch.tensor([li]),
+                        torch.tensor([si]),
+                        torch.tensor([b0]),
+                    )
+                    expect[li, si, 0, b0 : b0 + w] += (pred[sl] * m).sum(0)
+                    expect[li, si, 1, b0 : b0 + w] += (truth[sl] * m).sum(0)
+                    expect[li, si, 2, b0 : b0 + w] += m.sum(0)
+    rows = acc.line_side_rows()
+    assert [(r["line"], r["side"]) for r in rows] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    for r in rows:
+        e = expect[r["line"], r["side"]].sum(1)
+        assert r["count"] == e[2]
+        assert r["mean_pred"] == pytest.approx(e[0] / e[2])
+        assert r["mean_truth"] == pytest.approx(e[1] / e[2])
+        assert r["bias"] == pytest.approx((e[0] - e[1]) / e[2])
+    ranged = acc.range_rows(3)
+    assert [r["range_bin"] for r in ranged] == [0, 1, 2, 0, 1, 2]
+    biases = [r["bias"] for r in ranged if r["side"] == 0]
+    assert biases == sorted(biases) and biases[0] > 0.05  # the bias grows with range
+    first = ranged[0]
+    e = expect[:, 0, :, first["bin_lo"] : first["bin_hi"]].sum(axis=(0, 2))
+    assert first["bias"] == pytest.approx((e[0] - e[1]) / e[2])
+    with pytest.raises(ValueError, match="n_range_bins"):
+        acc.range_rows(0)
+    with pytest.raises(ValueError, match="mask: expected dtype"):
+        acc.update(*(torch.zeros(1, 1, 2, 2),) * 3, *(torch.zeros(1, dtype=torch.long),) * 3)
