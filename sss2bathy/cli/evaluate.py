@@ -11,22 +11,21 @@ import logging
 import math
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, config_dir, setup_environment
+from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.eval")
 
 
-def load_map(cfg: DictConfig, like):  # -> BathyGrid
-    """The map to score, on ``like``'s geometry (from a checkpoint or a GeoTIFF)."""
+def load_map(cfg: DictConfig, like, origin=None):  # -> BathyGrid
+    """The map to score, on ``like``'s geometry (from a checkpoint or a GeoTIFF; a
+    georeferenced GeoTIFF is shifted back into the local frame by the survey ``origin``)."""
     import torch
 
     from sss2bathy.eval.maps import siren_to_grid
     from sss2bathy.models.siren import Siren
-    from sss2bathy.survey import BathyGrid
 
     if bool(cfg.map_path) == bool(cfg.ckpt_path):
         raise ValueError(
@@ -39,7 +38,9 @@ def load_map(cfg: DictConfig, like):  # -> BathyGrid
             raise FileNotFoundError(f"ckpt_path: expected a checkpoint file, found {path}")
         state = torch.load(path, map_location="cpu", weights_only=True)["state_dict"]
         return siren_to_grid(Siren.from_state_dict(state, prefix="siren."), like)
-    grid = BathyGrid.load_geotiff(cfg.map_path)
+    from sss2bathy.io.export import read_geotiff
+
+    grid = read_geotiff(cfg.map_path, origin=origin)
     if grid.shape != like.shape or not np.allclose(
         [grid.x0, grid.y0, grid.cell_size], [like.x0, like.y0, like.cell_size]
     ):
@@ -58,7 +59,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     survey, _ = load_survey(cfg.data.survey, cfg.paths.data_dir)
     if survey.grid is None:
         raise ValueError(f"survey '{survey.name}': expected an MBES grid to evaluate against")
-    pred = load_map(cfg, survey.grid)
+    pred = load_map(cfg, survey.grid, survey.origin)
     lines = survey.split_lines(cfg.split)
     track = np.concatenate([ln.position[:, :2] for ln in lines])
     radius = cfg.region_radius_m
@@ -68,7 +69,9 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         radius = math.sqrt(max(r_max**2 - alt**2, 0.0)) or r_max
     region = track_region_mask(survey.grid, track, float(radius))
     metrics = map_metrics(pred, survey.grid, region)
-    save_map_outputs(out_dir, pred, survey.grid, region, metrics, title="evaluated map")
+    save_map_outputs(
+        out_dir, pred, survey.grid, region, metrics, title="evaluated map", origin=survey.origin
+    )
     log.info("metrics: %s", json.dumps(metrics))
     return metrics
 
@@ -76,7 +79,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
 setup_environment()
 
 
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="eval")
+@hydra_entry("eval")
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 

@@ -397,6 +397,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.table: PingTable | None = None
         self.altimeter: torch.Tensor | None = None
         self.grid: BathyGrid | None = None
+        self.origin: dict | None = None  # the survey origin {"crs", "easting", "northing"}
         self.sensor: SensorParams | None = None
         self.line_names: list[str] = []
         self.survey_dir: Path | None = None
@@ -434,6 +435,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.line_names = [ln.name for ln in lines]
         self.sensor = lines[0].sensor
         self.grid = survey.grid
+        self.origin = dict(survey.origin or {})
         ckpt = self.cnn_checkpoint
         if self.normals == "cnn" and ckpt == "latest":
             ckpt = str(latest_checkpoint(self.cnn_runs_dir))

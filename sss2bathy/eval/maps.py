@@ -9,14 +9,19 @@
 * :func:`gradient_hsv` — the paper's gradient picture: hue = direction
   ``arctan2(dz/dx, dz/dy)`` (the paper's ``arctan(dx/dy)`` over the full circle),
   saturation 1, value = gradient norm (scaled by ``vmax``).
-* :func:`render_map`, :func:`save_map_outputs` — PNGs and the files of a finished fit.
+* :func:`coverage_mask` — the cells a measurement constrains (the track region plus the
+  cells holding an altimeter point); ``map.tif`` is no-data elsewhere.
+* :func:`render_map`, :func:`save_map_outputs` — PNGs and the files of a finished fit. With
+  the survey origin the GeoTIFF is in true projected coordinates and the survey's CRS
+  (:func:`sss2bathy.io.export.write_geotiff`) and the PNG axes are easting/northing; without
+  it the PNGs say "local coordinates".
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +93,30 @@ def track_region_mask(grid: BathyGrid, track_xy: np.ndarray, radius_m: float) ->
     return (dist <= radius_m).reshape(grid.shape)
 
 
+def altimeter_cells(grid: BathyGrid, xy: np.ndarray) -> np.ndarray:
+    """``(ny, nx)`` bool: the cells whose area holds at least one of the points ``xy (N, 2)``."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros(grid.shape, dtype=bool)
+    ix = np.floor((xy[:, 0] - grid.x0) / grid.cell_size + 0.5).astype(np.int64)
+    iy = np.floor((xy[:, 1] - grid.y0) / grid.cell_size + 0.5).astype(np.int64)
+    ok = (ix >= 0) & (ix < grid.shape[1]) & (iy >= 0) & (iy < grid.shape[0])
+    out[iy[ok], ix[ok]] = True
+    return out
+
+
+def coverage_mask(
+    grid: BathyGrid, region: np.ndarray, altimeter_xy: np.ndarray | None = None
+) -> np.ndarray:
+    """Cells some measurement constrains: ``region`` (the sidescan swaths,
+    :func:`track_region_mask`) plus the cells holding an altimeter point."""
+    region = np.asarray(region, dtype=bool)
+    if region.shape != grid.shape:
+        raise ValueError(f"region: expected the grid's shape {grid.shape}, found {region.shape}")
+    if altimeter_xy is None or len(altimeter_xy) == 0:
+        return region.copy()
+    return region | altimeter_cells(grid, altimeter_xy)
+
+
 def map_metrics(
     pred_grid: BathyGrid, true_grid: BathyGrid, region_mask: np.ndarray | None = None
 ) -> dict[str, float]:
@@ -147,6 +176,7 @@ def render_map(
     symmetric: bool = False,
     label: str = "height (m)",
     extent: Sequence[float] | None = None,
+    origin: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a PNG of a map (north up).
 
@@ -158,7 +188,9 @@ def render_map(
         cmap: colour map of scalar maps.
         symmetric: colour limits ``+-max|value|`` (signed errors).
         label: colour-bar label of scalar maps.
-        extent: ``(xmin, xmax, ymin, ymax)`` axes in metres (taken from a grid).
+        extent: ``(xmin, xmax, ymin, ymax)`` axes in metres (taken from a grid), local frame.
+        origin: the survey origin ``{"crs", "easting", "northing"}``: axes in projected
+            easting/northing (the CRS named); without it the axes say "local".
     """
     import matplotlib
 
@@ -169,6 +201,10 @@ def render_map(
         data, extent = grid_or_array.heights, _extent(grid_or_array)
     else:
         data = np.asarray(grid_or_array)
+    if extent is not None and origin is not None:
+        e, n = float(origin.get("easting", 0.0)), float(origin.get("northing", 0.0))
+        x0, x1, y0, y1 = extent
+        extent = (x0 + e, x1 + e, y0 + n, y1 + n)
     if data.ndim not in (2, 3) or (data.ndim == 3 and data.shape[-1] != 3):
         raise ValueError(f"grid_or_array: expected (ny, nx) or (ny, nx, 3), found {data.shape}")
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
@@ -183,14 +219,53 @@ def render_map(
     else:
         ax.imshow(data, **kw)
     ax.set_title(title)
-    ax.set_xlabel("x east (m)" if extent is not None else "column")
-    ax.set_ylabel("y north (m)" if extent is not None else "row")
+    if extent is None:
+        ax.set_xlabel("column")
+        ax.set_ylabel("row")
+    else:
+        xlabel, ylabel = axis_labels(origin)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
+        _plain_ticks(ax)
     fig.tight_layout()
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return path
+
+
+def axis_labels(origin: Mapping[str, Any] | None) -> tuple[str, str]:
+    """Axis labels of a map figure: projected easting/northing (with the CRS) when the survey
+    origin is known, else local coordinates (and the origin when it is known but unnamed)."""
+    if origin is None:
+        return "x east (m), local coordinates", "y north (m), local coordinates"
+    crs = origin.get("crs")
+    if crs:
+        return f"easting (m), {_crs_label(crs)}", f"northing (m), {_crs_label(crs)}"
+    e, n = float(origin.get("easting", 0.0)), float(origin.get("northing", 0.0))
+    return f"easting (m), no CRS (origin E {e:.1f})", f"northing (m), no CRS (origin N {n:.1f})"
+
+
+def _crs_label(crs: str) -> str:
+    try:
+        from pyproj import CRS
+
+        c = CRS.from_user_input(crs)
+        epsg = c.to_epsg()
+        return f"EPSG:{epsg}" if epsg else c.name
+    except Exception:  # an unparsable label is still shown as given
+        return str(crs)[:40]
+
+
+def _plain_ticks(ax: Any) -> None:
+    from matplotlib.ticker import ScalarFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):
+        fmt = ScalarFormatter(useOffset=False)
+        fmt.set_scientific(False)
+        axis.set_major_formatter(fmt)
+    ax.tick_params(labelsize=7)
 
 
 def colorize(data: np.ndarray, cmap: str = "viridis", symmetric: bool = False) -> np.ndarray:
@@ -230,14 +305,36 @@ def save_map_outputs(
     region: np.ndarray | None = None,
     metrics: dict[str, Any] | None = None,
     title: str = "SIREN",
+    origin: Mapping[str, Any] | None = None,
+    altimeter_xy: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Write a finished map: ``map.tif`` (GeoTIFF), ``map.npz``, ``metrics.json`` and PNGs
     (``map.png``, ``gradient_hsv.png``, with an MBES grid also ``error.png``,
-    ``gt_gradient_hsv.png``). Returns the written paths by name."""
+    ``gt_gradient_hsv.png``). Returns the written paths by name.
+
+    Args:
+        out_dir, pred, true, region, metrics, title: the run folder, the map (local frame),
+            the MBES grid, the scored region (:func:`track_region_mask`), the metrics and the
+            figure title.
+        origin: the survey origin: ``map.tif`` in projected coordinates and the survey's CRS
+            (none when the survey has none), PNG axes in easting/northing. Without it the
+            GeoTIFF is in local coordinates **without a CRS** (a WARNING says so).
+        altimeter_xy: ``(N, 2)`` altimeter points used: their cells count as covered.
+
+    ``map.tif`` is no-data outside :func:`coverage_mask` (when ``region`` is given);
+    ``map.npz`` keeps every cell and the region.
+    """
+    from sss2bathy.io.export import write_geotiff
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"map_tif": out / "map.tif", "map_npz": out / "map.npz"}
-    pred.save_geotiff(paths["map_tif"])
+    covered = coverage_mask(pred, region, altimeter_xy) if region is not None else None
+    if origin is None:  # local coordinates: a CRS label would put the map in the wrong place
+        local = BathyGrid(pred.heights, pred.x0, pred.y0, pred.cell_size)
+        write_geotiff(local, paths["map_tif"], mask=covered)
+    else:
+        write_geotiff(pred, paths["map_tif"], origin=origin, mask=covered)
     arrays: dict[str, np.ndarray] = {
         "heights": pred.heights,
         "x0": np.float64(pred.x0),
@@ -255,7 +352,7 @@ def save_map_outputs(
         pred.y0,
         pred.cell_size,
     )
-    paths["map_png"] = render_map(shown, out / "map.png", f"{title}: bathymetry")
+    paths["map_png"] = render_map(shown, out / "map.png", f"{title}: bathymetry", origin=origin)
     vmax = None
     if true is not None:
         tx, ty = map_gradient(true.heights, true.cell_size)
@@ -266,6 +363,7 @@ def save_map_outputs(
             out / "gt_gradient_hsv.png",
             "MBES: gradient (HSV)",
             extent=_extent(true),
+            origin=origin,
         )
         paths["error_png"] = render_map(
             error_map(pred, true, region),
@@ -275,6 +373,7 @@ def save_map_outputs(
             symmetric=True,
             label="error (m)",
             extent=_extent(true),
+            origin=origin,
         )
     px, py = map_gradient(shown.heights, pred.cell_size)
     paths["gradient_png"] = render_map(
@@ -282,6 +381,7 @@ def save_map_outputs(
         out / "gradient_hsv.png",
         f"{title}: gradient (HSV)",
         extent=_extent(pred),
+        origin=origin,
     )
     if metrics is not None:
         paths["metrics"] = out / "metrics.json"

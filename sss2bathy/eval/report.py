@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.eval.cnn_table import cnn_table_csv, cnn_table_markdown
+from sss2bathy.eval.cnn_table import cnn_table_csv, cnn_table_markdown, constant_rows_from_metrics
 from sss2bathy.eval.paper_numbers import PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
@@ -103,8 +103,28 @@ def _mbes_grid(run: RunRecord) -> BathyGrid | None:
     name, data_dir = run.info.get("survey_name"), run.info.get("data_dir")
     if not name or not data_dir:
         return None
-    path = Path(data_dir) / name / "grid.tif"
-    return BathyGrid.load_geotiff(path) if path.is_file() else None
+    folder = Path(data_dir) / name
+    if not (folder / "survey.yaml").is_file():
+        return None
+    from sss2bathy.survey import Survey  # grid.tif is projected: Survey brings it back local
+
+    return Survey.load_grid(folder)
+
+
+def _origin_note(run: RunRecord) -> str:
+    """The figures' axes are local: say so, with the survey origin."""
+    from sss2bathy.survey import Survey
+
+    folder = Path(run.info.get("data_dir", "")) / run.info.get("survey_name", "")
+    try:
+        origin = Survey.read_manifest(folder).get("origin") or {}
+    except Exception:  # no readable manifest: the axes are still local
+        origin = {}
+    crs = origin.get("crs") or "no CRS"
+    return (
+        f"axes: local coordinates (m), origin E {float(origin.get('easting', 0.0)):.1f} "
+        f"N {float(origin.get('northing', 0.0)):.1f} ({crs})"
+    )
 
 
 def load_map_run(label: str, run: RunRecord, like: BathyGrid) -> MapRun | None:
@@ -205,6 +225,7 @@ def _panels(
     window: tuple[slice, slice] | None = None,
     mosaic: np.ndarray | None = None,
     title: str = "",
+    axes_note: str = "axes: local coordinates (m)",
 ) -> Path:
     """Row 1 bathymetry, row 2 HSV gradient; columns MBES then each map (optional mosaic)."""
     import matplotlib
@@ -240,6 +261,7 @@ def _panels(
     for ax in axes.ravel():
         ax.tick_params(labelsize=6)
     fig.suptitle(title or "bathymetry (top) and gradient in HSV (bottom)", fontsize=10)
+    fig.supxlabel(axes_note, fontsize=7)
     fig.tight_layout()
     return _save(fig, path)
 
@@ -325,7 +347,8 @@ def _survey_section(
         common,
         out / f"pdf_{key}.png",
     )
-    _panels(truth, maps, common, out / f"maps_{key}.png")
+    note = _origin_note(runs[present[0][0]])
+    _panels(truth, maps, common, out / f"maps_{key}.png", axes_note=note)
     lines = [f"## {title}", "", md.split("\n", 2)[2], f"![PDF of signed errors](pdf_{key}.png)", ""]
     lines += [f"![maps](maps_{key}.png)", ""]
     if zoom:
@@ -335,7 +358,8 @@ def _survey_section(
         chosen = [m for m in maps if m.label in ZOOM_LABELS]
         for k, window in enumerate(roughest_windows(truth, common, size)):
             name = f"zoom_{key}_{k}.png"
-            _panels(truth, chosen, common, out / name, window, mosaic, f"roughest area {k + 1}")
+            zoom_title = f"roughest area {k + 1}"
+            _panels(truth, chosen, common, out / name, window, mosaic, zoom_title, note)
             lines += [f"![zoom {k + 1}]({name})", ""]
     lines += ["Runs: " + ", ".join(f"{m.label}: `{m.run.path}`" for m in maps), ""]
     return lines
@@ -359,11 +383,14 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
 
     cnn = runs.get("cnn")
     rows = table_rows_from_metrics(cnn.metrics) if cnn else {}
+    # the constant (training-mean) prediction of each test set, when the run scored one
+    const = constant_rows_from_metrics(cnn.metrics) if cnn else {}
+    const = {k: v for k, v in const.items() if k in rows}
     index += ["## CNN (Table 2)", ""]
     if rows:
-        atomic_write_text(out / "table_cnn.md", cnn_table_markdown(rows))
-        atomic_write_text(out / "table_cnn.csv", cnn_table_csv(rows))
-        index += [cnn_table_markdown(rows).split("\n", 2)[2], f"Run: `{cnn.path}`", ""]
+        atomic_write_text(out / "table_cnn.md", cnn_table_markdown(rows, const))
+        atomic_write_text(out / "table_cnn.csv", cnn_table_csv(rows, const))
+        index += [cnn_table_markdown(rows, const).split("\n", 2)[2], f"Run: `{cnn.path}`", ""]
     else:
         index += ["No finished CNN run with test metrics was found.", ""]
     index += _survey_section(

@@ -433,7 +433,18 @@ class SirenModule(pl.LightningModule):
             title = "SIREN-Direct-Fit"
         else:
             title = type(self.sensor).__name__ if self.sensor is not None else "heights only"
-        paths = save_map_outputs(out_dir, pred, self.true_grid, self.region, summary, title)
+        dm = getattr(self.trainer, "datamodule", None)  # survey origin: georeferenced map.tif
+        alt = getattr(dm, "altimeter", None)
+        paths = save_map_outputs(
+            out_dir,
+            pred,
+            self.true_grid,
+            self.region,
+            summary,
+            title,
+            origin=getattr(dm, "origin", None),
+            altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
+        )
         log.info("SIREN map written to %s (%s)", paths["map_tif"], metrics)
         for logger in self.loggers:
             logger.log_hyperparams(self._hparams_for_log(), metrics=summary)

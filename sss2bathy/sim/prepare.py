@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import shutil
 import tempfile
 import time
@@ -23,7 +24,11 @@ import yaml
 
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.survey import BathyGrid
-from sss2bathy.utils.atomic import folder_digest_problems, write_folder_digest
+from sss2bathy.utils.atomic import (
+    default_dir_mode,
+    folder_digest_problems,
+    write_folder_digest,
+)
 from sss2bathy.utils.config import plain_config
 
 log = logging.getLogger(__name__)
@@ -123,11 +128,16 @@ def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = Fals
         survey.metadata["timing_s"]["generate_total"] = round(time.perf_counter() - t0, 3)
         tmp = Path(tempfile.mkdtemp(prefix=f".{config.name}.tmp-", dir=data_dir))
         try:
+            from sss2bathy.io.export import write_geotiff
+
+            os.chmod(tmp, default_dir_mode())  # mkdtemp makes it 0o700 whatever the umask
             crs = config.origin.get("crs")
-            terrain.grid(crs).save_geotiff(tmp / "truth" / "heights.tif")
-            BathyGrid(
-                terrain.materials.astype("float32"), 0.0, 0.0, terrain.cell_m, crs
-            ).save_geotiff(tmp / "truth" / "materials.tif")
+            write_geotiff(terrain.grid(crs), tmp / "truth" / "heights.tif", origin=config.origin)
+            write_geotiff(
+                BathyGrid(terrain.materials.astype("float32"), 0.0, 0.0, terrain.cell_m, crs),
+                tmp / "truth" / "materials.tif",
+                origin=config.origin,
+            )
             survey.save(tmp)
             write_folder_digest(tmp)
             old = None

@@ -9,6 +9,18 @@ import numpy as np
 
 from sss2bathy.survey.errors import SurveyFormatError
 
+GEOTIFF_TILE = 256
+"""Tile edge (px) of tiled GeoTIFFs, and the smallest overview kept."""
+
+
+def overview_factors(ny: int, nx: int, smallest: int = GEOTIFF_TILE) -> list[int]:
+    """Overview decimation factors 2, 4, 8, ... while ``max(ny, nx) / factor >= smallest``."""
+    factors, f = [], 2
+    while max(ny, nx) / f >= smallest:
+        factors.append(f)
+        f *= 2
+    return factors
+
 
 @dataclass
 class BathyGrid:
@@ -117,10 +129,19 @@ class BathyGrid:
         return trimesh.Trimesh(vertices=verts, faces=faces, process=False)
 
     # ------------------------------------------------------------------ GeoTIFF
-    def save_geotiff(self, path: str | Path) -> None:
-        """Write a north-up single-band float32 GeoTIFF (NaN no-data), atomically."""
+    def save_geotiff(self, path: str | Path, tags: dict[str, str] | None = None) -> None:
+        """Write the grid **in its own coordinates** as a north-up float32 GeoTIFF, atomically.
+
+        NaN is the no-data value (the nodata tag is set). Maps larger than
+        :data:`GEOTIFF_TILE` px are tiled, with internal overviews (averages) at factors
+        2, 4, 8, ... while the overview stays at least :data:`GEOTIFF_TILE` px, so GIS tools
+        open them fast. ``tags`` are written as GeoTIFF metadata. To place a local-frame grid
+        on the map use :func:`sss2bathy.io.export.write_geotiff` (it shifts by the survey
+        origin and labels the CRS).
+        """
         import rasterio
         from affine import Affine
+        from rasterio.enums import Resampling
 
         from sss2bathy.utils.atomic import atomic_path
 
@@ -128,6 +149,10 @@ class BathyGrid:
         west = self.x0 - self.cell_size / 2
         north = self.y0 + (ny - 0.5) * self.cell_size
         transform = Affine(self.cell_size, 0.0, west, 0.0, -self.cell_size, north)
+        profile: dict = {"compress": "deflate", "predictor": 3}
+        factors = overview_factors(ny, nx)
+        if max(ny, nx) > GEOTIFF_TILE:
+            profile.update(tiled=True, blockxsize=GEOTIFF_TILE, blockysize=GEOTIFF_TILE)
         with atomic_path(path) as tmp:
             with rasterio.open(
                 tmp,
@@ -140,9 +165,14 @@ class BathyGrid:
                 crs=self.crs,
                 transform=transform,
                 nodata=np.nan,
-                compress="deflate",
+                **profile,
             ) as dst:
                 dst.write(self.heights[::-1].astype(np.float32), 1)
+                if tags:
+                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
+                if factors:
+                    dst.build_overviews(factors, Resampling.average)
+                    dst.update_tags(ns="rio_overview", resampling="average")
 
     @classmethod
     def load_geotiff(cls, path: str | Path, band: int = 1) -> BathyGrid:

@@ -4,7 +4,9 @@ On disk a survey is a folder::
 
     survey.yaml          manifest: name, origin, sensor, lines, splits, metadata
     lines/<name>.npz     one compressed file per line (arrays below)
-    grid.tif             the MBES grid as GeoTIFF (optional)
+    grid.tif             the MBES grid as GeoTIFF (optional), in projected coordinates
+                         (local + origin) with the origin's CRS; ``grid_frame`` in the
+                         manifest says so (folders without it hold a local-frame grid.tif)
 
 Waterfalls are ``intensity[ping, side, bin]`` with side 0 = port, 1 = starboard and
 bin 0 nearest the sonar on both sides.
@@ -29,6 +31,8 @@ FORMAT_VERSION = 1
 
 # Per-ping origin of ``SidescanLine.altitude_m`` (``altitude_source``).
 ALTITUDE_RECORDED, ALTITUDE_DETECTED, ALTITUDE_INTERPOLATED, ALTITUDE_MISSING = 0, 1, 2, 3
+GRID_FRAMES = ("projected", "local")
+"""Frames a survey's ``grid.tif`` can be in (manifest ``grid_frame``; absent = ``local``)."""
 
 
 @dataclass(frozen=True)
@@ -317,7 +321,9 @@ class Survey:
         for ln in self.lines:
             ln.save(folder / "lines" / f"{ln.name}.npz")
         if self.grid is not None:
-            self.grid.save_geotiff(folder / "grid.tif")
+            from sss2bathy.io.export import write_geotiff
+
+            write_geotiff(self.grid, folder / "grid.tif", origin=self._grid_origin())
         manifest = {
             "format_version": FORMAT_VERSION,
             "name": self.name,
@@ -326,15 +332,25 @@ class Survey:
             "lines": [ln.name for ln in self.lines],
             "splits": {k: list(v) for k, v in self.splits.items()},
             "grid": "grid.tif" if self.grid is not None else None,
+            "grid_frame": "projected" if self.grid is not None else None,
             "metadata": self.metadata,
         }
         atomic_write_text(folder / "survey.yaml", yaml.safe_dump(manifest, sort_keys=False))
         return folder
 
-    @classmethod
-    def load(cls, folder: str | Path) -> Survey:
-        folder = Path(folder)
-        manifest_path = folder / "survey.yaml"
+    def _grid_origin(self) -> dict[str, Any]:
+        """The origin the grid is written with; the grid's CRS must be the origin's."""
+        origin = {"crs": None, "easting": 0.0, "northing": 0.0, **(self.origin or {})}
+        if origin["crs"] is None and self.grid is not None and self.grid.crs is not None:
+            raise SurveyFormatError(
+                self.name, "origin.crs", f"the grid's CRS {self.grid.crs}", "no CRS"
+            )
+        return origin
+
+    @staticmethod
+    def read_manifest(folder: str | Path) -> dict[str, Any]:
+        """The checked ``survey.yaml`` of a survey folder."""
+        manifest_path = Path(folder) / "survey.yaml"
         if not manifest_path.is_file():
             raise SurveyFormatError(manifest_path, "file", "a survey manifest", "missing file")
         try:
@@ -343,6 +359,40 @@ class Survey:
             raise SurveyFormatError(manifest_path, "file", "valid YAML", exc) from exc
         if not isinstance(manifest, dict):
             raise SurveyFormatError(manifest_path, "file", "a YAML mapping", type(manifest))
+        return manifest
+
+    @classmethod
+    def load_grid(
+        cls, folder: str | Path, manifest: dict[str, Any] | None = None
+    ) -> BathyGrid | None:
+        """The survey's MBES grid in its local frame, or ``None`` without one.
+
+        ``grid_frame: projected`` (written by :meth:`save`): the file's coordinates are shifted
+        back by the origin and its CRS must be the origin's. No ``grid_frame`` (folders written
+        before it existed): the file is read as it is, in the local frame.
+        """
+        folder = Path(folder)
+        manifest = cls.read_manifest(folder) if manifest is None else manifest
+        if not manifest.get("grid"):
+            return None
+        path = folder / manifest["grid"]
+        frame = manifest.get("grid_frame") or "local"
+        if frame not in GRID_FRAMES:
+            raise SurveyFormatError(
+                folder / "survey.yaml", "grid_frame", f"one of {list(GRID_FRAMES)}", frame
+            )
+        if frame == "local":
+            return BathyGrid.load_geotiff(path)
+        from sss2bathy.io.export import read_geotiff
+
+        origin = {"crs": None, "easting": 0.0, "northing": 0.0, **(manifest.get("origin") or {})}
+        return read_geotiff(path, origin=origin)
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Survey:
+        folder = Path(folder)
+        manifest_path = folder / "survey.yaml"
+        manifest = cls.read_manifest(folder)
         for key in ("name", "lines", "sensor"):
             if key not in manifest:
                 raise SurveyFormatError(manifest_path, key, "a manifest key", "missing")
@@ -359,9 +409,7 @@ class Survey:
         lines = [
             SidescanLine.load(folder / "lines" / f"{n}.npz", n, sensor) for n in manifest["lines"]
         ]
-        grid = None
-        if manifest.get("grid"):
-            grid = BathyGrid.load_geotiff(folder / manifest["grid"])
+        grid = cls.load_grid(folder, manifest)
         try:
             return cls(
                 name=manifest["name"],
