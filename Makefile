@@ -14,7 +14,7 @@ export SSS2BATHY_ROOT := $(CURDIR)
 export HYDRA_FULL_ERROR := 1
 
 .PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
-	siren-cnn-n2d siren-lambert siren-lambert-all d2 d3 report paper sweep-example bench schedule-study tb clean
+	siren-cnn-n2d siren-lambert siren-lambert-all map d2 d3 report paper sweep-example bench schedule-study tb clean
 
 help: ## Show this help
 	@grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
@@ -73,6 +73,10 @@ siren-lambert: install ## Paper experiment: Lambertian baseline, 12 test lines
 siren-lambert-all: install ## Paper experiment: Lambertian baseline, all lines of sidescan
 	$(BIN)/sss2bathy-train experiment=siren_lambert_all scale=$(SCALE) $(ARGS)
 
+map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> map.tif, map.png, metrics.json
+	@test -n "$(XTF)" || { echo "make map: expected XTF=<folder, file or glob of .xtf files>, found none"; exit 2; }
+	$(BIN)/python -m sss2bathy.cli.map 'files=$(XTF)' scale=$(SCALE) $(if $(CKPT),'cnn_checkpoint=$(CKPT)') $(ARGS)
+
 d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
 	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
 		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
@@ -109,6 +113,18 @@ schedule-study: install ## SIREN-CNN-N2d: paper schedule vs fast schedule, map M
 	$(STUDY_TRAIN) siren_schedule=paper scale.siren.eval_every_n_epochs=25 hydra.run.dir=$(STUDY)/paper $(ARGS)
 	$(BIN)/python -m sss2bathy.eval.schedule_study --reference paper --reference-epochs 1500 \
 		--run paper=$(STUDY)/paper --run fast=$(STUDY)/fast --run $(SCALE)=$(STUDY)/scale_default --out $(STUDY)
+
+.PHONY: lambert-tune
+TUNE := outputs/multiruns/lambert_tune/$(SCALE)
+TUNE_TRAIN := $(BIN)/sss2bathy-train -m experiment=lambert_tune scale=$(SCALE) torch_threads=1
+lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one run at a time (12 runs, ~20 min) -> outputs/lambert_tune/
+	rm -rf $(TUNE)
+	$(TUNE_TRAIN) model.sensor.q=1,2,4 model.sensor.reflectivity=constant,field hydra.sweep.dir=$(TUNE)/q_reflectivity $(ARGS)
+	$(TUNE_TRAIN) model.sensor.shadow_threshold=0,0.5 hydra.sweep.dir=$(TUNE)/shadow_threshold $(ARGS)
+	$(TUNE_TRAIN) model.sensor.near_range_cut_m=16 hydra.sweep.dir=$(TUNE)/near_range_cut $(ARGS)
+	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_lr=1e-2 hydra.sweep.dir=$(TUNE)/field_lr $(ARGS)
+	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_weight=0,0.1 hydra.sweep.dir=$(TUNE)/field_weight $(ARGS)
+	$(BIN)/python -m sss2bathy.eval.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
 tb: install ## TensorBoard on outputs/
 	$(BIN)/tensorboard --logdir outputs/ --bind_all

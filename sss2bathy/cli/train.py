@@ -7,15 +7,63 @@ sss2bathy-train -m experiment=siren_gt_n2d model.w_height=0.1,1,10 seed=1,2
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, config_dir, setup_environment, write_run_record
+from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment, write_run_record
 
 log = logging.getLogger("sss2bathy.train")
+
+# what a run without MBES is scored by when its optimized_metric was not logged
+HOLDOUT_METRIC = "val/holdout_alt_mae"
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` returns: the final metrics and whether the data had an MBES grid."""
+
+    metrics: dict[str, Any]
+    has_mbes: bool
+
+
+def optimized_value(
+    name: str | None, metrics: Mapping[str, Any], has_mbes: bool
+) -> tuple[str | None, float | None]:
+    """``(metric name, value)`` to return to a sweeper for ``optimized_metric=name``.
+
+    The configured metric when it was logged. A run without MBES (the sidescan-only route:
+    no ``val/mae``) falls back to the held-out altimeter MAE (:data:`HOLDOUT_METRIC`) with a
+    WARNING, or to ``(None, None)`` with a WARNING when that was not logged either (no
+    held-out points). A run with MBES that did not log its metric is a configuration error.
+    """
+    if not name:
+        return None, None
+    if name in metrics:
+        return name, float(metrics[name])
+    if has_mbes:
+        raise KeyError(f"optimized_metric '{name}' was not logged; logged: {sorted(metrics)}")
+    fallback = metrics.get(HOLDOUT_METRIC)
+    if fallback is not None and math.isfinite(float(fallback)):
+        log.warning(
+            "optimized_metric '%s' was not logged (no MBES grid); returning %s = %.4f instead",
+            name,
+            HOLDOUT_METRIC,
+            float(fallback),
+        )
+        return HOLDOUT_METRIC, float(fallback)
+    log.warning(
+        "optimized_metric '%s' was not logged (no MBES grid) and neither was %s "
+        "(no held-out altimeter points: data.holdout); returning none",
+        name,
+        HOLDOUT_METRIC,
+    )
+    return None, None
 
 
 def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
@@ -23,6 +71,12 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
 
     Returns the final metrics (``trainer.callback_metrics`` after fit and test).
     """
+    return fit(cfg, run_dir).metrics
+
+
+def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
+    """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
+    modules without that attribute, the CNN's, always train on MBES)."""
     import pytorch_lightning as pl
     from pytorch_lightning.utilities.model_helpers import is_overridden
 
@@ -80,26 +134,24 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
         metrics.update(final)
     if run_dir is not None and trainer.is_global_zero:
         write_run_record(run_dir, cfg, metrics)
-    return metrics
+    has_mbes = getattr(datamodule, "grid", True) is not None
+    return FitResult(metrics, has_mbes)
 
 
 setup_environment()
 
 
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="train")
+@hydra_entry("train")
 def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
     apply_extras(cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    metrics = train(cfg, run_dir)
-    name = cfg.get("optimized_metric")
+    result = fit(cfg, run_dir)
     # evaluation-only runs (train=false) have no optimised metric to return
-    if name and cfg.get("train", True):
-        if name not in metrics:
-            raise KeyError(f"optimized_metric '{name}' was not logged; logged: {sorted(metrics)}")
-        return float(metrics[name])
-    return None
+    if not cfg.get("train", True):
+        return None
+    return optimized_value(cfg.get("optimized_metric"), result.metrics, result.has_mbes)[1]
 
 
 if __name__ == "__main__":

@@ -54,6 +54,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from sss2bathy.data.sources import load_survey, survey_folder
 from sss2bathy.data.windows import EpochSampler
+from sss2bathy.eval.holdout import AltimeterSplit, split_altimeter
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
 
 log = logging.getLogger(__name__)
@@ -316,6 +317,36 @@ class PingBatches(Dataset):
         return batch
 
 
+# ----------------------------------------------------------- held-out altimeter points
+HOLDOUT_KEYS = ("fraction", "block_pings", "seed")
+
+
+def holdout_config(holdout: Mapping[str, Any] | None, seed: int) -> dict[str, Any]:
+    """The ``data.holdout`` settings checked and completed: ``fraction`` (0 = off),
+    ``block_pings`` and ``seed`` (``None`` = the datamodule's ``seed``)."""
+    given = dict(holdout or {})
+    unknown = sorted(set(given) - set(HOLDOUT_KEYS))
+    if unknown:
+        raise ValueError(
+            f"data.holdout: expected keys among {list(HOLDOUT_KEYS)}, found unknown {unknown}"
+        )
+    cfg = {"fraction": 0.0, "block_pings": 50, "seed": seed}
+    cfg.update({k: v for k, v in given.items() if v is not None})
+    try:
+        fraction = float(cfg["fraction"])
+    except (TypeError, ValueError):
+        fraction = float("nan")
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(
+            f"data.holdout.fraction: expected a number in [0, 1), found {cfg['fraction']!r}"
+        )
+    if not isinstance(cfg["block_pings"], int) or cfg["block_pings"] < 1:
+        raise ValueError(
+            f"data.holdout.block_pings: expected a positive integer, found {cfg['block_pings']!r}"
+        )
+    return {"fraction": fraction, "block_pings": int(cfg["block_pings"]), "seed": int(cfg["seed"])}
+
+
 class PingAltimeterDataModule(pl.LightningDataModule):
     """Batches of random pings (all bins) and random altimeter points for the SIREN fit.
 
@@ -341,6 +372,9 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         drape: draping config (:class:`~sss2bathy.draping.DrapeConfig` fields) or ``None``.
         z_margin: fraction of the altimeter height span added on either side of
             :attr:`z_range`; ``z_margin_m`` is the least margin (m).
+        holdout: held-out altimeter evaluation (``fraction``, ``block_pings``, ``seed``;
+            :func:`holdout_config`); ``None`` or ``fraction: 0`` = every altimeter point is
+            fitted. The split is :attr:`holdout_split`.
     """
 
     def __init__(
@@ -362,6 +396,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         drape: Mapping[str, Any] | None = None,
         z_margin: float = 0.25,
         z_margin_m: float = 2.0,
+        holdout: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
         if normals not in NORMAL_SOURCES:
@@ -394,6 +429,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.drape = drape
         self.z_margin = float(z_margin)
         self.z_margin_m = float(z_margin_m)
+        self.holdout = holdout_config(holdout, self.seed)
+        self.holdout_split: AltimeterSplit | None = None
         self.table: PingTable | None = None
         self.altimeter: torch.Tensor | None = None
         self.grid: BathyGrid | None = None
@@ -450,7 +487,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             self.need_intensity,
             self.drape,
         )
-        alt = survey.altimeter(self.altimeter_split).xyz
+        alt = self._fit_altimeter(survey)
         if alt.shape[0] == 0:
             raise ValueError(
                 f"altimeter_split: expected lines with altitude readings in split "
@@ -475,6 +512,44 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         lo = (pos[:, :2].amin(0) - reach).tolist()
         hi = (pos[:, :2].amax(0) + reach).tolist()
         return (lo[0], lo[1], hi[0], hi[1])
+
+    def _fit_altimeter(self, survey: Survey) -> np.ndarray:
+        """``(M, 3)`` altimeter points of ``altimeter_split`` the fit uses; with a holdout,
+        the others go to :attr:`holdout_split` (:func:`sss2bathy.eval.holdout.split_altimeter`)."""
+        lines = survey.split_lines(self.altimeter_split)
+        if self.holdout["fraction"] == 0.0:
+            self.holdout_split = None
+            return survey.altimeter(self.altimeter_split).xyz
+        split = split_altimeter(
+            [ln.position for ln in lines],
+            [ln.altitude_m for ln in lines],
+            self.holdout["fraction"],
+            self.holdout["block_pings"],
+            self.holdout["seed"],
+        )
+        if split.n_held == 0:
+            longest = max((ln.n_pings for ln in lines), default=0)
+            log.warning(
+                "data.holdout: no altimeter point held out (blocks of %d pings, fraction %g, "
+                "longest line %d pings); no held-out score — set data.holdout.block_pings "
+                "smaller, or data.holdout.fraction=0 to silence this",
+                self.holdout["block_pings"],
+                self.holdout["fraction"],
+                longest,
+            )
+            self.holdout_split = None
+        else:
+            self.holdout_split = split
+            log.info(
+                "data.holdout: %d of %d altimeter points held out (%.1f %%, blocks of %d pings); "
+                "along-track interpolation of the rest scores %.3f m MAE on them",
+                split.n_held,
+                split.n_held + split.fit.shape[0],
+                100 * split.fraction,
+                self.holdout["block_pings"],
+                split.interp_mae,
+            )
+        return split.fit
 
     def _z_range(self, z: np.ndarray) -> tuple[float, float]:
         zmin, zmax = float(np.min(z)), float(np.max(z))

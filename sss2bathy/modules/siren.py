@@ -29,7 +29,10 @@ at the end of the fit the SIREN is sampled on the MBES grid (or, without one, on
 ``eval_cell_m`` over the bounds) and scored over the *surveyed area*: cells within the
 swath half-width (``sqrt(r_max^2 - median altitude^2)``, or ``region_radius_m``) of any
 sonar position of the lines used. Logged: ``val/mae``, ``val/std``, ``val/grad_cs``
-(:mod:`sss2bathy.metrics.bathy`); images by :class:`SirenMapImages` (TensorBoard only).
+(:mod:`sss2bathy.metrics.bathy`); with held-out altimeter points (``data.holdout``, with or
+without MBES) ``val/holdout_alt_mae``, ``val/holdout_interp_mae`` (the along-track
+interpolation baseline, constant over the run) and ``val/holdout_ratio``
+(:mod:`sss2bathy.eval.holdout`); images by :class:`SirenMapImages` (TensorBoard only).
 At the end of the fit ``map.tif``, ``map.npz``, ``metrics.json`` and PNGs go to
 ``output_dir`` (default: the logger's ``save_dir``, i.e. the Hydra run folder, else the
 trainer's ``default_root_dir``), and the hyper-parameters are logged with the final
@@ -257,6 +260,10 @@ class SirenModule(pl.LightningModule):
         self.register_buffer("framed", torch.tensor(False))
         self.register_buffer("theta_cache", torch.zeros(0, 2, 0), persistent=False)
         self.register_buffer("fit_cells", torch.zeros(0, 3), persistent=False)
+        # held-out altimeter points (x, y, z) of the datamodule's holdout split
+        self.register_buffer("holdout_points", torch.zeros(0, 3), persistent=False)
+        self.holdout_interp_mae: float | None = None
+        self.final_metrics: dict[str, float] = {}
         self.theta_limits: tuple[float, float] | None = None
         self.eval_like: BathyGrid | None = None
         self.true_grid: BathyGrid | None = None
@@ -284,6 +291,7 @@ class SirenModule(pl.LightningModule):
         )
         radius = self.region_radius_m or dm.swath_half_width_m
         self.region = track_region_mask(self.eval_like, dm.track_xy, radius)
+        self._setup_holdout(getattr(dm, "holdout_split", None))
         if self.direct_fit:
             if dm.grid is None:
                 raise ValueError("direct_fit: expected a survey with an MBES grid, found none")
@@ -406,18 +414,67 @@ class SirenModule(pl.LightningModule):
         return out["loss"]
 
     # -------------------------------------------------------------- evaluation
+    def _setup_holdout(self, split: Any) -> None:
+        """Held-out altimeter points (:class:`~sss2bathy.eval.holdout.AltimeterSplit`, or
+        ``None``) for :meth:`holdout_metrics`; the interpolation baseline is fixed here."""
+        if split is None or split.n_held == 0:
+            self.holdout_points = torch.zeros(0, 3, device=self.holdout_points.device)
+            self.holdout_interp_mae = None
+            return
+        pts = torch.from_numpy(np.asarray(split.held, np.float32))
+        self.holdout_points = pts.to(self.holdout_points.device)
+        self.holdout_interp_mae = float(split.interp_mae)
+
+    def holdout_metrics(self) -> dict[str, float]:
+        """``holdout_alt_mae`` (the SIREN at the held-out altimeter points, m),
+        ``holdout_interp_mae`` (along-track interpolation of the kept points there, m),
+        ``holdout_ratio`` (their ratio; < 1: the fit beats interpolation) and
+        ``holdout_n``; empty without held-out points."""
+        if not self.holdout_points.numel() or self.holdout_interp_mae is None:
+            return {}
+        from sss2bathy.eval.holdout import holdout_mae
+
+        pts = self.holdout_points
+        with torch.no_grad():
+            z = torch.cat([self.siren.height(part) for part in pts[:, :2].split(65536)])
+        alt_mae = holdout_mae(z.float().cpu().numpy(), pts[:, 2].cpu().numpy())
+        interp = self.holdout_interp_mae
+        return {
+            "holdout_alt_mae": alt_mae,
+            "holdout_interp_mae": interp,
+            "holdout_ratio": alt_mae / interp if interp > 0 else float("nan"),
+            "holdout_n": int(pts.shape[0]),
+        }
+
     def evaluate_map(self) -> tuple[BathyGrid, dict[str, float]]:
-        """The SIREN on the evaluation grid and, with an MBES grid, its metrics."""
+        """The SIREN on the evaluation grid, its metrics against the MBES grid (if any) and
+        on the held-out altimeter points (if any). The latest evaluation's numbers are also
+        kept as :attr:`final_metrics` (``final/<name>``; after a fit: the final map's)."""
         pred = siren_to_grid(self.siren, self.eval_like)
         metrics = map_metrics(pred, self.true_grid, self.region) if self.true_grid else {}
+        metrics.update(self.holdout_metrics())
+        self.final_metrics = {
+            f"final/{k}": float(v)
+            for k, v in metrics.items()
+            if isinstance(v, int | float) and math.isfinite(v)
+        }
         return pred, metrics
 
+    def _eval_due(self) -> bool:
+        """Every ``eval_every_n_epochs`` epochs, and at the last epoch of ``max_epochs``
+        (so a short run still logs its ``val/*`` metrics once)."""
+        epoch = self.current_epoch + 1
+        max_epochs = self.trainer.max_epochs
+        last = max_epochs is not None and max_epochs > 0 and epoch >= max_epochs
+        return epoch % self.eval_every_n_epochs == 0 or last
+
     def validation_step(self, batch: Any, batch_idx: int) -> None:
-        if self.trainer.sanity_checking or (self.current_epoch + 1) % self.eval_every_n_epochs:
+        if self.trainer.sanity_checking or not self._eval_due():
             return
         pred, metrics = self.evaluate_map()
         self.last_eval = {"pred": pred, "metrics": metrics, "epoch": self.current_epoch}
-        for key in ("mae", "std", "grad_cs"):
+        keys = ("mae", "std", "grad_cs", "holdout_alt_mae", "holdout_interp_mae", "holdout_ratio")
+        for key in keys:
             if key in metrics and math.isfinite(metrics[key]):
                 self.log(f"val/{key}", metrics[key], batch_size=1)
 
