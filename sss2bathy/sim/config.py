@@ -520,6 +520,83 @@ def _read_sonar(r: _Reader) -> SonarParams:
     return params
 
 
+# ------------------------------------------------------------------------- randomize
+@dataclass(frozen=True)
+class RandomizeParams:
+    """Per-line randomised sensor, seabed response and altitude (domain randomisation).
+
+    Every line of the listed ``splits`` draws its own sonar (each given ``[low, high]``
+    range, uniform; angles in radians here), receiver gain (dB, uniform), per-material
+    backscatter strength (``mu`` times a log-uniform factor) and angular exponent (plus a
+    uniform offset), and an altitude offset (the sonar flies that much higher above the
+    same seabed, as if the site were deeper under that line). Ranges left ``None`` keep the
+    survey's value. Draws use their own random stream per line, so lines outside ``splits``
+    are identical to those of the same survey without randomisation.
+    """
+
+    splits: tuple[str, ...] = ("train",)
+    tilt_rad: tuple[float, float] | None = None
+    beam_width_rad: tuple[float, float] | None = None
+    beam_rolloff: tuple[float, float] | None = None
+    sidelobe_db: tuple[float, float] | None = None
+    tvg_spreading_exponent: tuple[float, float] | None = None
+    tvg_absorption_factor: tuple[float, float] | None = None
+    gain_db: tuple[float, float] | None = None
+    mu_scale: tuple[float, float] | None = None
+    exponent_offset: tuple[float, float] | None = None
+    altitude_offset_m: tuple[float, float] | None = None
+
+
+def _optional_pair(r: _Reader, key: str, **limits: float) -> tuple[float, float] | None:
+    if r.data.get(key) is None:
+        r.used.add(key)
+        return None
+    return r.pair(key, (0.0, 0.0), **limits)
+
+
+def _read_randomize(r: _Reader) -> RandomizeParams | None:
+    """``None`` unless ``enabled: true`` (the ranges are validated either way)."""
+    enabled = r.raw("enabled")
+    if enabled is None:
+        enabled = False
+    if not isinstance(enabled, bool):
+        raise config_error(f"{r.path}.enabled", "true or false", enabled)
+    path, splits = r._get("splits", ["train"])
+    if (
+        not isinstance(splits, Sequence)
+        or isinstance(splits, str)
+        or not splits
+        or any(x not in ("train", "test") for x in splits)
+    ):
+        raise config_error(path, "a non-empty list of 'train' / 'test'", splits)
+    sr, mr = r.section("sonar"), r.section("materials")
+
+    def radians(pair: tuple[float, float] | None) -> tuple[float, float] | None:
+        return None if pair is None else (math.radians(pair[0]), math.radians(pair[1]))
+
+    params = RandomizeParams(
+        splits=tuple(str(x) for x in splits),
+        tilt_rad=radians(_optional_pair(sr, "tilt_deg", gt=0.0, le=89.0)),
+        beam_width_rad=radians(_optional_pair(sr, "beam_width_deg", gt=0.0, le=179.0)),
+        beam_rolloff=_optional_pair(sr, "beam_rolloff", gt=0.0),
+        sidelobe_db=_optional_pair(sr, "sidelobe_db", le=-1.0),
+        tvg_spreading_exponent=_optional_pair(sr, "tvg_spreading_exponent", le=6.0),
+        tvg_absorption_factor=_optional_pair(sr, "tvg_absorption_factor", le=2.0),
+        gain_db=_optional_pair(sr, "gain_db"),
+        mu_scale=_optional_pair(mr, "mu_scale", gt=0.0),
+        exponent_offset=_optional_pair(mr, "exponent_offset"),
+        altitude_offset_m=_optional_pair(r, "altitude_offset_m"),
+    )
+    for key in ("tvg_spreading_exponent", "tvg_absorption_factor"):
+        pair = getattr(params, key)
+        if pair is not None and pair[0] < 0:
+            raise config_error(f"{sr.path}.{key}[0]", "a number >= 0", pair[0])
+    sr.done()
+    mr.done()
+    r.done()
+    return params if enabled else None
+
+
 # ----------------------------------------------------------------------------- survey
 @dataclass(frozen=True)
 class SyntheticSurveyConfig:
@@ -533,6 +610,7 @@ class SyntheticSurveyConfig:
     plan: PlanParams
     sonar: SonarParams
     workers: int = 1
+    randomize: RandomizeParams | None = None
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> SyntheticSurveyConfig:
@@ -551,6 +629,7 @@ class SyntheticSurveyConfig:
         plan = _read_plan(r.section("plan"))
         sonar = _read_sonar(r.section("sonar"))
         workers = r.integer("workers", 1, ge=1)
+        randomize = _read_randomize(r.section("randomize"))
         r.text("description", None)
         unknown = sorted(set(r.data) - r.used)
         if unknown:
@@ -558,7 +637,7 @@ class SyntheticSurveyConfig:
                 f"{ROOT}: ignoring keys {unknown} unknown to the synthetic generator",
                 stacklevel=2,
             )
-        return cls(name, seed, origin, terrain, materials, plan, sonar, workers)
+        return cls(name, seed, origin, terrain, materials, plan, sonar, workers, randomize)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain, JSON/YAML-serialisable dict of the resolved config (radians, SI)."""
@@ -568,6 +647,8 @@ class SyntheticSurveyConfig:
     def hash(self) -> str:
         """Cache key: the resolved config minus unhashed keys, plus the generator version."""
         d = {k: v for k, v in self.to_dict().items() if k not in UNHASHED_KEYS}
+        if d.get("randomize") is None:  # off: the same data (and cache key) as without it
+            d.pop("randomize", None)
         return stable_hash({"generator_version": GENERATOR_VERSION, "config": d})
 
 

@@ -6,6 +6,7 @@ Random streams are independent per stage (``[seed, stage]``) and per line
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -14,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.sim.config import GENERATOR_VERSION, SyntheticSurveyConfig
-from sss2bathy.sim.plan import PlannedLine, plan_survey
+from sss2bathy.sim.config import GENERATOR_VERSION, RandomizeParams, SyntheticSurveyConfig
+from sss2bathy.sim.plan import PlannedLine, plan_survey, validate_swath
 from sss2bathy.sim.sonar import (
     MaterialResponse,
     RayCaster,
@@ -38,7 +39,7 @@ from sss2bathy.survey import BathyGrid, SensorParams, SidescanLine, Survey, mask
 
 log = logging.getLogger(__name__)
 
-_STAGE_TERRAIN, _STAGE_PLAN, _STAGE_MBES, _STAGE_LINES = 0, 1, 2, 3
+_STAGE_TERRAIN, _STAGE_PLAN, _STAGE_MBES, _STAGE_LINES, _STAGE_RANDOMIZE = 0, 1, 2, 3, 4
 
 
 @dataclass
@@ -112,6 +113,100 @@ def altitude_summary(planned: list[PlannedLine]) -> dict[str, dict[str, float]]:
     return out
 
 
+def _draw(rng: np.random.Generator, pair: tuple[float, float] | None, current: float) -> float:
+    return current if pair is None else float(rng.uniform(pair[0], pair[1]))
+
+
+def randomize_line(
+    line: PlannedLine,
+    index: int,
+    physics: _Physics,
+    randomize: RandomizeParams,
+    terrain: Terrain,
+    reference_material: int,
+    min_altitude_m: float,
+) -> tuple[PlannedLine, _Physics, dict[str, Any]]:
+    """One line's own sonar, receiver gain, backscatter response and altitude offset.
+
+    Draws come from the stream ``[seed, 4, index]``; returns the (shifted) line, its
+    physics and the drawn values (degrees, dB, metres) for the survey metadata.
+    """
+    cfg = physics.config
+    rng = np.random.default_rng([cfg.seed, _STAGE_RANDOMIZE, index])
+    base = cfg.sonar
+    sonar = dataclasses.replace(
+        base,
+        tilt_rad=_draw(rng, randomize.tilt_rad, base.tilt_rad),
+        beam_width_rad=_draw(rng, randomize.beam_width_rad, base.beam_width_rad),
+        beam_rolloff=_draw(rng, randomize.beam_rolloff, base.beam_rolloff),
+        sidelobe_db=_draw(rng, randomize.sidelobe_db, base.sidelobe_db),
+        tvg_spreading_exponent=_draw(
+            rng, randomize.tvg_spreading_exponent, base.tvg_spreading_exponent
+        ),
+        tvg_absorption_factor=_draw(
+            rng, randomize.tvg_absorption_factor, base.tvg_absorption_factor
+        ),
+    )
+    gain_db = _draw(rng, randomize.gain_db, 0.0)
+    n_mat = len(physics.response.names)
+    mu_factor = np.ones(n_mat)
+    if randomize.mu_scale is not None:
+        lo, hi = np.log(randomize.mu_scale[0]), np.log(randomize.mu_scale[1])
+        mu_factor = np.exp(rng.uniform(lo, hi, n_mat))
+    exp_offset = np.zeros(n_mat)
+    if randomize.exponent_offset is not None:
+        exp_offset = rng.uniform(*randomize.exponent_offset, n_mat)
+    response = dataclasses.replace(
+        physics.response,
+        mu=physics.response.mu * mu_factor,
+        exponent=np.maximum(physics.response.exponent + exp_offset, 1.0),
+    )
+    offset = _draw(rng, randomize.altitude_offset_m, 0.0)
+    if offset != 0.0:
+        up = np.array([0.0, 0.0, offset])
+        line = dataclasses.replace(
+            line,
+            position=line.position + up,
+            nav_position=line.nav_position + up,
+            altitude_m=line.altitude_m + offset,
+        )
+        low = float(line.altitude_m.min())
+        if low < min_altitude_m:
+            raise ValueError(
+                f"data.survey.randomize.altitude_offset_m: expected offsets that keep every "
+                f"altitude >= plan.min_altitude_m ({min_altitude_m} m), found {low:.2f} m on "
+                f"{line.name} (offset {offset:+.2f} m)"
+            )
+        validate_swath(line.name, line.position, line.rotation, sonar, terrain)
+    calibration = calibrate_receiver(
+        sonar,
+        response,
+        reference_material,
+        physics.calibration.reference_altitude_m,
+        physics.absorption,
+    )
+    calibration = dataclasses.replace(calibration, gain=calibration.gain * 10 ** (gain_db / 20))
+    sensor = dataclasses.replace(
+        physics.sensor, tilt_rad=sonar.tilt_rad, beam_width_rad=sonar.beam_width_rad
+    )
+    line_physics = _Physics(
+        dataclasses.replace(cfg, sonar=sonar), response, calibration, physics.absorption, sensor
+    )
+    drawn = {
+        "tilt_deg": round(math.degrees(sonar.tilt_rad), 3),
+        "beam_width_deg": round(math.degrees(sonar.beam_width_rad), 3),
+        "beam_rolloff": round(sonar.beam_rolloff, 4),
+        "sidelobe_db": round(sonar.sidelobe_db, 3),
+        "tvg_spreading_exponent": round(sonar.tvg_spreading_exponent, 4),
+        "tvg_absorption_factor": round(sonar.tvg_absorption_factor, 4),
+        "gain_db": round(gain_db, 3),
+        "mu_factor": [round(float(v), 4) for v in mu_factor],
+        "exponent_offset": [round(float(v), 4) for v in exp_offset],
+        "altitude_offset_m": round(offset, 3),
+    }
+    return line, line_physics, drawn
+
+
 # Worker state for parallel line simulation (one terrain + ray caster per process).
 _WORKER: dict[str, Any] = {}
 
@@ -125,9 +220,10 @@ def _worker_init(terrain: Terrain, physics: _Physics) -> None:
     _WORKER["surface"] = TerrainSurface(terrain)
 
 
-def _worker_line(job: tuple[PlannedLine, int]) -> SidescanLine:
-    line, index = job
-    return simulate_line(line, index, _WORKER["physics"], _WORKER["caster"], _WORKER["surface"])
+def _worker_line(job: tuple[PlannedLine, int, _Physics | None]) -> SidescanLine:
+    line, index, own = job
+    physics = own if own is not None else _WORKER["physics"]
+    return simulate_line(line, index, physics, _WORKER["caster"], _WORKER["surface"])
 
 
 def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
@@ -168,7 +264,17 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
         SensorParams(sonar.tilt_rad, sonar.beam_width_rad, sonar.frequency_hz, speed),
     )
 
-    jobs = [(line, i) for i, line in enumerate(planned)]
+    # domain randomisation: the listed splits' lines get their own physics (None: shared)
+    own: list[_Physics | None] = [None] * len(planned)
+    drawn: dict[str, dict[str, Any]] = {}
+    if config.randomize is not None:
+        ref = config.materials.index(config.materials.reference_material)
+        for i, line in enumerate(planned):
+            if line.split in config.randomize.splits:
+                planned[i], own[i], drawn[line.name] = randomize_line(
+                    line, i, physics, config.randomize, terrain, ref, config.plan.min_altitude_m
+                )
+    jobs = [(line, i, own[i]) for i, line in enumerate(planned)]
     workers = min(config.workers, len(jobs))
     if workers > 1:
         import multiprocessing as mp
@@ -181,8 +287,8 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
     else:
         caster, surface = RayCaster(terrain.to_mesh()), TerrainSurface(terrain)
         lines = []
-        for line, i in jobs:
-            lines.append(simulate_line(line, i, physics, caster, surface))
+        for line, i, line_physics in jobs:
+            lines.append(simulate_line(line, i, line_physics or physics, caster, surface))
             log.debug("simulated %s (%d pings)", line.name, len(line.time_s))
     t_lines = time.perf_counter()
 
@@ -218,6 +324,7 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
                 "set": ln.line_set,
                 "heading_deg": round(math.degrees(ln.heading_rad), 3),
                 "pings": int(len(ln.time_s)),
+                **({"randomized": drawn[ln.name]} if ln.name in drawn else {}),
             }
             for ln in planned
         },

@@ -159,3 +159,72 @@ def test_parallel_workers_give_the_same_survey(tiny_d1):
     for a, b in zip(survey.lines, parallel.lines, strict=True):
         np.testing.assert_array_equal(a.intensity, b.intensity)
         np.testing.assert_array_equal(a.extras["true_n_lat"], b.extras["true_n_lat"])
+
+
+def _randomized(**overrides):
+    return preset("synthetic_d1", "tiny", randomize__enabled=True, **overrides)
+
+
+def test_randomize_off_keeps_data_and_cache_key():
+    plain = SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny"))
+    assert plain.randomize is None
+    without = preset("synthetic_d1", "tiny")
+    without.pop("randomize")
+    assert SyntheticSurveyConfig.from_mapping(without).hash() == plain.hash()
+    on = SyntheticSurveyConfig.from_mapping(_randomized())
+    assert on.randomize is not None and on.randomize.splits == ("train",)
+    assert on.hash() != plain.hash()
+
+
+@pytest.mark.parametrize(
+    "key, value, match",
+    [
+        ("randomize__enabled", "yes", r"data\.survey\.randomize\.enabled: expected true or false"),
+        ("randomize__splits", ["val"], r"data\.survey\.randomize\.splits: expected"),
+        ("randomize__sonar__tilt_deg", [35.0, 20.0], r"randomize\.sonar\.tilt_deg: expected low"),
+        ("randomize__materials__mu_scale", [0.0, 1.0], r"randomize\.materials\.mu_scale\[0\]"),
+        ("randomize__sonar__gain", [0, 1], r"randomize\.sonar: unknown key\(s\) \['gain'\]"),
+    ],
+)
+def test_randomize_bad_values_are_named(key, value, match):
+    with pytest.raises(ValueError, match=match):  # checked even while disabled
+        SyntheticSurveyConfig.from_mapping(preset("synthetic_d1", "tiny", **{key: value}))
+
+
+def test_randomized_training_lines_draw_their_own_sensor_and_altitude(tiny_d1):
+    base, _ = tiny_d1
+    cfg = SyntheticSurveyConfig.from_mapping(_randomized())
+    survey, terrain = generate_survey(cfg)
+    r = cfg.randomize
+    meta = survey.metadata["lines"]
+    drawn = [meta[name]["randomized"] for name in survey.splits["train"]]
+    assert len(drawn) == 2 and drawn[0] != drawn[1]
+    for d in drawn:
+        assert r.tilt_rad[0] <= np.radians(d["tilt_deg"]) <= r.tilt_rad[1]
+        assert r.altitude_offset_m[0] <= d["altitude_offset_m"] <= r.altitude_offset_m[1]
+        assert all(r.mu_scale[0] <= f <= r.mu_scale[1] for f in d["mu_factor"])
+    for plain, line in zip(base.lines, survey.lines, strict=True):
+        if line.name in survey.splits["test"]:  # test lines: bit-identical to the plain survey
+            assert "randomized" not in meta[line.name]
+            np.testing.assert_array_equal(line.intensity, plain.intensity)
+            assert line.sensor == plain.sensor
+            continue
+        d = meta[line.name]["randomized"]
+        assert line.sensor.tilt_rad == pytest.approx(np.radians(d["tilt_deg"]), abs=1e-4)
+        np.testing.assert_allclose(
+            line.altitude_m, plain.altitude_m + d["altitude_offset_m"], atol=2e-3
+        )
+        below = terrain.sample_heights(line.position[:, 0], line.position[:, 1])
+        np.testing.assert_allclose(line.position[:, 2] - line.altitude_m, below, atol=1e-3)
+        assert not np.array_equal(line.intensity, plain.intensity)
+        valid = line.extras["true_mask"] == MASK_VALID
+        assert valid.mean() > 0.02 and 0.01 < line.intensity[valid].mean() < 0.9  # 14 m range
+    # the drawn values are a pure function of the config
+    again, _ = generate_survey(cfg)
+    np.testing.assert_array_equal(again.lines[0].intensity, survey.lines[0].intensity)
+
+
+def test_randomized_altitude_below_the_minimum_is_named():
+    cfg = SyntheticSurveyConfig.from_mapping(_randomized(randomize__altitude_offset_m=[-9.0, -8.0]))
+    with pytest.raises(ValueError, match=r"randomize\.altitude_offset_m: expected offsets"):
+        generate_survey(cfg)
