@@ -126,6 +126,12 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_weight=0,0.1 hydra.sweep.dir=$(TUNE)/field_weight $(ARGS)
 	$(BIN)/python -m sss2bathy.eval.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
+LC_N_TRAIN ?= 8,16,32
+.PHONY: learning-curve
+learning-curve: install ## CNN test MAE vs training lines / time, one survey, fixed test lines -> outputs/learning_curve/
+	$(BIN)/python -m sss2bathy.eval.learning_curve --n-train $(LC_N_TRAIN) --scale $(SCALE) \
+		--torch-threads $${TORCH_THREADS:-1} --out outputs/learning_curve $(ARGS)
+
 tb: install ## TensorBoard on outputs/
 	$(BIN)/tensorboard --logdir outputs/ --bind_all
 

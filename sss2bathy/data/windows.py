@@ -388,6 +388,10 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         drape: :class:`DrapeConfig` fields (``None``: defaults).
         test_surveys: extra ``data/survey`` configs tested on all their lines.
         seed: seed of the validation split and of the training shuffle/flips.
+        n_train_lines: use only this many of the survey's training lines (validation lines
+            included), the first of a permutation drawn with ``seed`` (a smaller set is part
+            of a larger one); None: all. With the survey generated once for the largest
+            count the test lines stay the same (:mod:`sss2bathy.eval.learning_curve`).
     """
 
     def __init__(
@@ -406,8 +410,17 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         drape: Mapping[str, Any] | None = None,
         test_surveys: Sequence[Mapping[str, Any]] | None = None,
         seed: int = 0,
+        n_train_lines: int | None = None,
     ) -> None:
         super().__init__()
+        if n_train_lines is not None and not (
+            isinstance(n_train_lines, int) and not isinstance(n_train_lines, bool)
+            and n_train_lines >= 2
+        ):  # fmt: skip
+            raise ValueError(
+                f"data.n_train_lines: expected null or an integer >= 2, found {n_train_lines!r}"
+            )
+        self.n_train_lines = n_train_lines
         self.survey_cfg = _survey_dict(survey, "survey")
         self.test_survey_cfgs = [
             _survey_dict(c, f"test_surveys[{i}]") for i, c in enumerate(test_surveys or [])
@@ -441,6 +454,7 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                 "drape": drape_map,
                 "test_surveys": self.test_survey_cfgs,
                 "seed": self.seed,
+                "n_train_lines": n_train_lines,
             },
             logger=False,
         )
@@ -499,6 +513,15 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         survey, folder = self._load(self.survey_cfg)
         if need_fit:
             train = self._split(survey, "train")
+            if self.n_train_lines is not None:
+                if self.n_train_lines > len(train):
+                    raise ValueError(
+                        f"data.n_train_lines: expected at most the {len(train)} training lines "
+                        f"of survey '{survey.name}', found {self.n_train_lines}"
+                    )
+                order = np.random.default_rng([self.seed, 1]).permutation(len(train))
+                keep = set(order[: self.n_train_lines].tolist())
+                train = [n for i, n in enumerate(train) if i in keep]
             if len(train) < 2:
                 raise ValueError(
                     f"survey '{survey.name}': expected at least 2 training lines to carve a "
