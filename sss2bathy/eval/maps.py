@@ -105,16 +105,28 @@ def altimeter_cells(grid: BathyGrid, xy: np.ndarray) -> np.ndarray:
 
 
 def coverage_mask(
-    grid: BathyGrid, region: np.ndarray, altimeter_xy: np.ndarray | None = None
+    grid: BathyGrid,
+    region: np.ndarray,
+    altimeter_xy: np.ndarray | None = None,
+    margin_cells: int = 1,
 ) -> np.ndarray:
     """Cells some measurement constrains: ``region`` (the sidescan swaths,
-    :func:`track_region_mask`) plus the cells holding an altimeter point."""
+    :func:`track_region_mask`) plus the cells holding an altimeter point, grown by
+    ``margin_cells`` (default 1: the central-difference stencil, so the slope of every
+    covered cell can still be computed from the written map)."""
     region = np.asarray(region, dtype=bool)
     if region.shape != grid.shape:
         raise ValueError(f"region: expected the grid's shape {grid.shape}, found {region.shape}")
-    if altimeter_xy is None or len(altimeter_xy) == 0:
-        return region.copy()
-    return region | altimeter_cells(grid, altimeter_xy)
+    if int(margin_cells) != margin_cells or margin_cells < 0:
+        raise ValueError(f"margin_cells: expected a count >= 0, found {margin_cells}")
+    covered = region.copy()
+    if altimeter_xy is not None and len(altimeter_xy):
+        covered |= altimeter_cells(grid, altimeter_xy)
+    if margin_cells and covered.any():
+        from scipy.ndimage import binary_dilation
+
+        covered = binary_dilation(covered, np.ones((3, 3), bool), iterations=int(margin_cells))
+    return covered
 
 
 def map_metrics(

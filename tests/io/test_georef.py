@@ -89,7 +89,10 @@ def test_altimeter_points_outside_the_swaths_count_as_coverage():
     region = np.zeros(grid.shape, bool)
     cells = altimeter_cells(grid, np.array([[3.2, 6.7], [-50.0, 0.0]]))  # 2nd: off the grid
     assert cells.sum() == 1 and cells[7, 3]
-    assert coverage_mask(grid, region, np.array([[3.2, 6.7]]))[7, 3]
+    assert coverage_mask(grid, region, np.array([[3.2, 6.7]]), margin_cells=0).sum() == 1
+    grown = coverage_mask(grid, region, np.array([[3.2, 6.7]]))  # + the gradient stencil
+    assert grown.sum() == 9 and grown[6:9, 2:5].all()
+    assert not coverage_mask(grid, region).any()
     with pytest.raises(ValueError, match="region: expected the grid's shape"):
         coverage_mask(grid, np.zeros((3, 3), bool))
 
@@ -211,3 +214,16 @@ def test_survey_without_crs_saves_its_grid_without_one(tmp_path, caplog):
     labelled.grid.crs = "EPSG:32633"
     with pytest.raises(SurveyFormatError, match="origin.crs"):
         labelled.save(tmp_path / "t")
+
+
+def test_report_reads_the_projected_survey_grid_back_local(tmp_path):
+    from sss2bathy.eval.report import RunRecord, _mbes_grid, _origin_note, _panels
+
+    _survey().save(tmp_path / "data" / "s")
+    run = RunRecord(tmp_path, {"survey_name": "s", "data_dir": str(tmp_path / "data")}, {})
+    truth = _mbes_grid(run)
+    assert truth.x0 == pytest.approx(-3.25, abs=1e-9) and truth.crs == "EPSG:32633"
+    note = _origin_note(run)
+    assert "local coordinates" in note and "E 680000.0" in note and "EPSG:32633" in note
+    region = np.ones(truth.shape, bool)
+    assert _panels(truth, [], region, tmp_path / "maps.png", axes_note=note).is_file()

@@ -119,3 +119,17 @@ def test_siren_lambert_end_to_end_from_xtf(tmp_path, sim_survey):
     assert finite.size > 100
     assert depths.min() - 5 < np.median(finite) < depths.max() + 5
     assert (out / "metrics.json").is_file()
+    # georeferenced: the survey's CRS, a navigation fix (local + origin) on a covered cell,
+    # no-data far from the tracks
+    import rasterio
+    from pyproj import CRS
+
+    with rasterio.open(out / "map.tif") as src:
+        assert CRS.from_user_input(src.crs) == CRS.from_user_input(sim_survey.origin["crs"])
+        assert src.nodata is not None and np.isnan(src.nodata)
+        line = sim_survey.split_lines("test")[0]
+        px, py = line.position[len(line.position) // 2, :2]
+        e, n = sim_survey.origin["easting"], sim_survey.origin["northing"]
+        row, col = src.index(px + e, py + n)
+        data = src.read(1)
+        assert np.isfinite(data[row, col]) and np.isnan(data).any()
