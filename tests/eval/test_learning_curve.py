@@ -116,3 +116,12 @@ def test_two_tiny_runs_share_their_test_lines(tmp_path):
         d1 = [r for r in csv.DictReader(io.StringIO(bias)) if r["dataset"].endswith(":test")]
         truth.append([(r["line"], r["side"], r["count"], r["mean_truth"]) for r in d1])
     assert truth[0] and truth[0] == truth[1]
+
+
+def test_n_train_lines_is_validated():
+    from sss2bathy.data.windows import SidescanWindowDataModule
+
+    survey = {"kind": "synthetic", "name": "x"}
+    for bad in (1, 2.5, True):
+        with pytest.raises(ValueError, match="data.n_train_lines: expected null or an integer"):
+            SidescanWindowDataModule(survey, "/tmp", n_train_lines=bad)
