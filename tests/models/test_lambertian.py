@@ -590,6 +590,9 @@ def test_model_swap_changes_only_the_sensor():
         ("siren_gt_n2d", "siren_lambert",
          {"data.normals", "data.need_intensity", "callbacks.lambert_curves"}),
         ("siren_lambert", "siren_lambert_all", {"data.sidescan_split", "data.batch_pings"}),
+        ("siren_lambert", "lambert_tune",
+         {"data.sidescan_split", "data.altimeter_split", "data.steps_per_epoch",
+          "model.log_images", "callbacks.lambert_curves", "torch_threads"}),
         ("d2_siren_cnn_n2d", "d2_siren_lambert",
          {"data.normals", "data.need_intensity", "data.cnn_checkpoint",
           "callbacks.lambert_curves"}),
@@ -615,6 +618,10 @@ def test_experiment_values():
     assert cfg.callbacks.lambert_curves.every_n_epochs == cfg.model.eval_every_n_epochs
     cfg = _compose("experiment=siren_lambert_all")
     assert (cfg.data.sidescan_split, cfg.data.altimeter_split) == ("all", "test")
+    # the tuning sweep never sees the test lines, and runs on one thread
+    cfg = _compose("experiment=lambert_tune")
+    assert (cfg.data.sidescan_split, cfg.data.altimeter_split) == ("train", "train")
+    assert cfg.torch_threads == 1 and cfg.callbacks.lambert_curves is None
     for name in ("d2_siren_cnn_n2d", "d2_siren_lambert"):
         cfg = _compose(f"experiment={name}", "scale=demo")
         assert cfg.data.survey.name == "synthetic_d2_demo"
