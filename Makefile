@@ -11,7 +11,6 @@ TORCH_SPEC ?= torch==2.13.0
 ARGS ?=
 SCALE ?= demo
 export SSS2BATHY_ROOT := $(CURDIR)
-export HYDRA_FULL_ERROR := 1
 
 .PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
 	siren-cnn-n2d siren-lambert siren-lambert-all map d2 d3 report paper sweep-example bench schedule-study tb clean

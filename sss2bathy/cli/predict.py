@@ -8,10 +8,9 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, config_dir, setup_environment
+from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.predict")
 
@@ -64,7 +63,7 @@ def predict(cfg: DictConfig) -> dict:
 setup_environment()
 
 
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="predict")
+@hydra_entry("predict")
 def main(cfg: DictConfig) -> None:
     apply_extras(cfg)
     preds = predict(cfg)

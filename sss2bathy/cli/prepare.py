@@ -7,12 +7,12 @@ sss2bathy-prepare data/survey=xtf data.survey.files=/path/to/xtf data.survey.mbe
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, config_dir, setup_environment
+from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.prepare")
 
@@ -23,13 +23,21 @@ def prepare(cfg: DictConfig) -> Path:
     from sss2bathy.data.sources import load_survey
 
     validate_config(cfg)
+    name = cfg.data.survey.get("name")
+    existed = bool(name) and (Path(cfg.paths.data_dir) / str(name)).exists()
     survey, folder = load_survey(cfg.data.survey, cfg.paths.data_dir, force=cfg.get("force", False))
     log.info("survey %s: %d lines at %s", survey.name, len(survey.lines), folder)
     if cfg.get("drape", True) and survey.grid is not None:
         from sss2bathy.draping import drape_survey
         from sss2bathy.survey import mask_reason_counts
 
-        draped = drape_survey(survey, folder)
+        try:
+            draped = drape_survey(survey, folder)
+        except ValueError:
+            # An import this call made that cannot be draped is no survey: leave nothing.
+            if not existed and cfg.data.survey.get("kind") == "xtf":
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
         for name, d in draped.items():
             log.info("draped %s: %s", name, mask_reason_counts(d.mask))
     if cfg.get("render", True):
@@ -47,7 +55,7 @@ def prepare(cfg: DictConfig) -> Path:
 setup_environment()
 
 
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="prepare")
+@hydra_entry("prepare")
 def main(cfg: DictConfig) -> None:
     apply_extras(cfg)
     folder = prepare(cfg)

@@ -83,6 +83,27 @@ def _check_crs(survey: Survey) -> None:
         )
 
 
+def overlap_diagnosis(survey: Survey, lines: list[SidescanLine]) -> str:
+    """What the lines' footprint does relative to the survey's grid, in words: outside its
+    extent (frame/origin/CRS), or inside it on empty (NaN) cells (holes)."""
+    if survey.grid is None:
+        return "the lines do not reach the mesh — check that lines and mesh share one frame"
+    from sss2bathy.io.grids import footprint_coverage
+
+    cov = footprint_coverage(survey.grid, lines)
+    crs = f"lines CRS {(survey.origin or {}).get('crs')}, grid CRS {survey.grid.crs}"
+    if cov["inside"] == 0.0:
+        return (
+            "the lines do not overlap the grid: their footprint lies entirely outside its "
+            f"extent — check the survey origin and CRS ({crs})"
+        )
+    return (
+        f"{100 * cov['inside']:.0f}% of the lines' footprint lies inside the grid's extent, "
+        f"but {100 * cov['holes']:.0f}% of that falls on empty (NaN) cells: the grid has "
+        f"holes under the lines ({100 * cov['grid_nan']:.0f}% of its cells are NaN)"
+    )
+
+
 def _surface_source(
     survey: Survey, survey_dir: Path, cfg: DrapeConfig
 ) -> tuple[str, dict[str, Any]]:
@@ -174,8 +195,9 @@ def drape_survey(
 
     Raises:
         ValueError: no grid and no mesh; grid and lines in different CRSs; unknown line
-            names; or no bin of any requested line lands on the surface (the lines do not
-            overlap the grid: wrong frame or origin).
+            names; or no bin of any requested line lands on the surface (the message says
+            whether the lines miss the grid's extent or fall on its empty cells; nothing
+            is written to the cache then).
     """
     if not isinstance(survey, Survey):
         raise ValueError(f"survey: expected a Survey, found {type(survey).__name__}")
@@ -193,50 +215,54 @@ def drape_survey(
     key = _cache_key(cfg, surface_hash, line_hashes)
     folder = survey_dir / "draped" / key
     manifest = folder / "manifest.json"
-    if not manifest.is_file():
-        folder.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(
-            manifest,
-            json.dumps(
-                {
-                    "key": key,
-                    "config": cfg.cache_dict(),
-                    "surface": surface_desc,
-                    "surface_hash": surface_hash,
-                    "line_hashes": line_hashes,
-                },
-                indent=2,
-                sort_keys=True,
-            ),
-        )
 
+    # Drape what is not cached in memory first: a draping that lands nowhere raises before
+    # anything is written (no all-"no hit" cache left behind).
     result: dict[str, DrapedLine] = {}
+    fresh: list[str] = []
     surface: DrapeSurface | None = None
     for name in names:
         line = survey.line(name)
-        path = folder / f"{name}.npz"
-        draped = _load_cached(path, key, line, line_hashes[name])
+        draped = _load_cached(folder / f"{name}.npz", key, line, line_hashes[name])
         if draped is None:
             if surface is None:
                 surface = _build_surface(survey, survey_dir, cfg)
             draped = drape_line(line, surface, cfg)
             draped.meta = {"key": key, "line": name, "line_hash": line_hashes[name]}
-            draped.save(path)
+            fresh.append(name)
             counts = _counts(draped.mask)
             log.info("draped line '%s' (%s): %s", name, surface.engine, counts)
             if counts["valid"] == 0:
                 log.warning(
-                    "line '%s': no valid bin on the surface (%s); does the line overlap "
-                    "the grid, in the same frame?",
+                    "line '%s': no valid bin on the surface (%s); %s",
                     name,
                     counts,
+                    overlap_diagnosis(survey, [line]),
                 )
         result[name] = draped
     if result and not any(d.valid.any() for d in result.values()):
         totals = _counts(np.concatenate([d.mask.ravel() for d in result.values()]))
         raise ValueError(
             f"survey '{survey.name}': no bin of lines {names} lands on the surface "
-            f"(mask counts {totals}); the lines do not overlap the grid/mesh — check the "
-            "survey origin and that lines and grid share one frame"
+            f"(mask counts {totals}); " + overlap_diagnosis(survey, [survey.line(n) for n in names])
         )
+    if fresh:
+        folder.mkdir(parents=True, exist_ok=True)
+        if not manifest.is_file():
+            atomic_write_text(
+                manifest,
+                json.dumps(
+                    {
+                        "key": key,
+                        "config": cfg.cache_dict(),
+                        "surface": surface_desc,
+                        "surface_hash": surface_hash,
+                        "line_hashes": line_hashes,
+                    },
+                    indent=2,
+                    sort_keys=True,
+                ),
+            )
+        for name in fresh:
+            result[name].save(folder / f"{name}.npz")
     return result

@@ -615,3 +615,46 @@ def read_grid(
     if origin is not None:
         grid = shift_grid(grid, origin)
     return grid
+
+
+def footprint_coverage(grid: BathyGrid, lines: list) -> dict[str, float]:
+    """Where the lines' swaths fall on ``grid``: ``inside`` — fraction of footprint points
+    (each ping's nadir and its port/starboard swath at the farthest horizontal range, sampled
+    every range step) within the grid's extent; ``holes`` — fraction of those inside points
+    on NaN cells; ``grid_nan`` — fraction of the grid's cells that are NaN."""
+    pts = []
+    for ln in lines:
+        xy = ln.position[:, :2]
+        right = ln.rotation[:, :2, 1]  # vehicle +y (left, FLU) in world
+        norm = np.linalg.norm(right, axis=1, keepdims=True)
+        right = right / np.where(norm > 0, norm, 1.0)
+        r = np.asarray(ln.range_m, dtype=np.float64)
+        alt = np.where(np.isfinite(ln.altitude_m), ln.altitude_m, 0.0)[:, None]
+        ground = np.sqrt(np.maximum(r[None, :] ** 2 - alt**2, 0.0))  # (P, B)
+        step = max(1, r.size // 16)
+        g = ground[:, ::step]
+        for sign in (1.0, -1.0):
+            pts.append((xy[:, None, :] + sign * g[..., None] * right[:, None, :]).reshape(-1, 2))
+        pts.append(xy)
+    xy = np.concatenate(pts)
+    west, south, east, north = _bounds(grid)
+    inside = (xy[:, 0] >= west) & (xy[:, 0] <= east) & (xy[:, 1] >= south) & (xy[:, 1] <= north)
+    holes = 0.0
+    if inside.any():
+        holes = float((~np.isfinite(grid.sample(xy[inside, 0], xy[inside, 1]))).mean())
+    return {
+        "inside": float(inside.mean()),
+        "holes": holes,
+        "grid_nan": float((~np.isfinite(grid.heights)).mean()),
+    }
+
+
+def _bounds(grid: BathyGrid) -> tuple[float, float, float, float]:
+    ny, nx = grid.shape
+    h = grid.cell_size / 2
+    return (
+        grid.x0 - h,
+        grid.y0 - h,
+        grid.x0 + (nx - 1) * grid.cell_size + h,
+        grid.y0 + (ny - 1) * grid.cell_size + h,
+    )

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sss2bathy.io.grids import read_grid, shift_grid
+from sss2bathy.io.grids import footprint_coverage, read_grid, shift_grid
 from sss2bathy.io.xtf import SENSOR_KEYS, read_xtf
 from sss2bathy.survey import BathyGrid, Survey, SurveyFormatError
 from sss2bathy.utils.atomic import (
@@ -141,6 +141,7 @@ def _validate(cfg: dict[str, Any]) -> None:
         v = cfg.get(key)
         if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
             raise ValueError(f"data.survey.{key}: expected null or a number, found {v!r}")
+    resolve_files(cfg.get("files"))
     unknown = sorted(set(cfg) - set(DEFAULTS))
     if unknown:
         log.warning("data.survey: ignoring keys unknown to the xtf source: %s", unknown)
@@ -301,12 +302,29 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
         else:
             grid = read_grid(grid_path, origin=origin, **grid_kwargs)
         coverage = _grid_coverage(grid, lines)
-        if coverage == 0.0:
+        foot = footprint_coverage(grid, lines)
+        if foot["inside"] == 0.0:
             log.warning(
-                "survey '%s': the MBES grid covers none of the sonar positions (CRS mix-up?)",
+                "survey '%s': the MBES grid's extent holds none of the lines' footprint "
+                "(origin or CRS mix-up? lines CRS %s, grid CRS %s)",
                 merged["name"],
+                origin.get("crs"),
+                grid.crs,
             )
-        stats["_mbes_grid"] = {"file": str(grid_path), "pings_over_grid": coverage}
+        elif foot["holes"] > 0.5:
+            log.warning(
+                "survey '%s': the lines overlap the MBES grid (%.0f%% of their footprint inside "
+                "its extent) but %.0f%% of that falls on empty (NaN) cells: holes in the grid",
+                merged["name"],
+                100 * foot["inside"],
+                100 * foot["holes"],
+            )
+        stats["_mbes_grid"] = {
+            "file": str(grid_path),
+            "pings_over_grid": coverage,
+            "footprint_inside_extent": foot["inside"],
+            "footprint_on_nan_cells": foot["holes"],
+        }
 
     survey = Survey(
         name=merged["name"],
