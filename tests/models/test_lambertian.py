@@ -11,7 +11,6 @@ import torch
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation
 from sss2bathy.models.lambertian import (
-    LambertCurvesLogger,
     LambertianSensorModel,
     ReflectivityField,
     beam_pattern_pwl,
@@ -22,6 +21,7 @@ from sss2bathy.models.lambertian import (
     waterfall_image,
 )
 from sss2bathy.models.sensors import ArcGeometry
+from sss2bathy.modules.lambert_callbacks import LambertCurvesLogger
 
 TILT_DEG, BEAM_DEG = 30.0, 60.0
 R_MIN, R_MAX = 2.0, 60.0
@@ -544,6 +544,19 @@ def test_curves_logger_writes_tensorboard_figures(tmp_path):
     assert len(events.Images("lambert/waterfall")) == 1
     with pytest.raises(ValueError, match="every_n_epochs"):
         LambertCurvesLogger(every_n_epochs=0)
+
+
+@pytest.mark.parametrize("experiment", ["siren_lambert", "d2_siren_lambert", "d3_siren_lambert"])
+def test_curves_logger_target_instantiates_outside_models(experiment):
+    import inspect
+
+    from hydra.utils import instantiate
+
+    import sss2bathy.models.lambertian as lambertian
+
+    callback = instantiate(_compose(f"experiment={experiment}").callbacks.lambert_curves)
+    assert isinstance(callback, LambertCurvesLogger)
+    assert "pytorch_lightning" not in inspect.getsource(lambertian)  # models/ knows no Lightning
 
 
 # -- configs ------------------------------------------------------------------------------
