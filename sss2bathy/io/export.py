@@ -138,8 +138,9 @@ def read_geotiff(
     survey's local frame.
 
     With ``origin`` a georeferenced file (tag ``SSS2BATHY_FRAME=projected``, or any GeoTIFF
-    without the tag) is shifted back by the origin, and its CRS must be the origin's (both
-    absent for a survey without a CRS), else :class:`SurveyFormatError` names the two. A file
+    without the tag) is shifted back by the origin; when the origin names a CRS the file's
+    must be the same, else :class:`SurveyFormatError` names the two (an origin without a CRS
+    keeps whatever label the file has). A file
     tagged ``unreferenced`` (written without origin or CRS) is returned as it is. Without
     ``origin`` the grid keeps the file's coordinates.
     """
@@ -155,13 +156,13 @@ def read_geotiff(
     if frame != "projected":
         raise SurveyFormatError(path, FRAME_TAG, "'projected' or 'unreferenced'", frame)
     ocrs = origin.get("crs")
-    if (grid.crs is None) != (ocrs is None) or (
-        grid.crs is not None and not _same_crs(grid.crs, ocrs)
-    ):
+    if ocrs is not None and (grid.crs is None or not _same_crs(grid.crs, ocrs)):
         raise SurveyFormatError(
-            path, "crs", f"the survey origin's CRS {ocrs or '(none)'}", grid.crs or "(none)"
+            path, "crs", f"the survey origin's CRS {ocrs}", grid.crs or "no CRS"
         )
-    return to_local(grid, origin)
+    local = to_local(grid, origin)
+    local.crs = ocrs or grid.crs  # an origin without a CRS keeps the file's label
+    return local
 
 
 def _same_crs(a: str, b: str) -> bool:

@@ -339,13 +339,9 @@ class Survey:
         return folder
 
     def _grid_origin(self) -> dict[str, Any]:
-        """The origin the grid is written with; the grid's CRS must be the origin's."""
-        origin = {"crs": None, "easting": 0.0, "northing": 0.0, **(self.origin or {})}
-        if origin["crs"] is None and self.grid is not None and self.grid.crs is not None:
-            raise SurveyFormatError(
-                self.name, "origin.crs", f"the grid's CRS {self.grid.crs}", "no CRS"
-            )
-        return origin
+        """The origin the grid is written with (its CRS, when set, must be the grid's; an
+        origin without one leaves the grid's own label, if any)."""
+        return {"crs": None, "easting": 0.0, "northing": 0.0, **(self.origin or {})}
 
     @staticmethod
     def read_manifest(folder: str | Path) -> dict[str, Any]:

@@ -110,12 +110,9 @@ def test_survey_without_crs_writes_no_crs_and_says_so(tmp_path, caplog):
         assert src.tags()["SSS2BATHY_CRS"] == "none"
     back = read_geotiff(tmp_path / "g.tif", origin=origin)
     assert (back.x0, back.y0, back.crs) == (10.0, 20.0, None)
-    # the survey has no CRS but the file has one (or the other way round): named, not guessed
-    write_geotiff(local, tmp_path / "h.tif", origin=ORIGIN)
-    with pytest.raises(
-        SurveyFormatError, match=r"'crs': expected the survey origin's CRS \(none\)"
-    ):
-        read_geotiff(tmp_path / "h.tif", origin=origin)
+    # the survey names a CRS the file lacks: named, not guessed
+    with pytest.raises(SurveyFormatError, match="'crs': expected the survey origin's CRS EPSG"):
+        read_geotiff(tmp_path / "g.tif", origin=ORIGIN)
 
 
 def test_run_map_without_origin_is_local_and_carries_no_crs(tmp_path, caplog):
@@ -210,10 +207,16 @@ def test_survey_without_crs_saves_its_grid_without_one(tmp_path, caplog):
     with rasterio.open(folder / "grid.tif") as src:
         assert src.crs is None
     assert Survey.load(folder).grid.x0 == pytest.approx(-3.25, abs=1e-9)
+    # a grid with its own CRS label in a survey whose origin names none keeps its label
     labelled = _survey(origin)
     labelled.grid.crs = "EPSG:32633"
-    with pytest.raises(SurveyFormatError, match="origin.crs"):
-        labelled.save(tmp_path / "t")
+    back = Survey.load(labelled.save(tmp_path / "t"))
+    assert back.grid.crs == "EPSG:32633" and back.grid.x0 == pytest.approx(-3.25, abs=1e-9)
+    # a grid in another CRS than the origin's is refused at saving
+    other = _survey()
+    other.grid.crs = "EPSG:32634"
+    with pytest.raises(ValueError, match="crs: expected the survey origin's CRS"):
+        other.save(tmp_path / "u")
 
 
 def test_report_reads_the_projected_survey_grid_back_local(tmp_path):
