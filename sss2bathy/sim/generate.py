@@ -129,7 +129,8 @@ def randomize_line(
     """One line's own sonar, receiver gain, backscatter response and altitude offset.
 
     Draws come from the stream ``[seed, 4, index]``; returns the (shifted) line, its
-    physics and the drawn values (degrees, dB, metres) for the survey metadata.
+    physics and the drawn values (degrees, dB, metres) for the survey metadata. The line's
+    recorded sensor stays the survey's nominal one.
     """
     cfg = physics.config
     rng = np.random.default_rng([cfg.seed, _STAGE_RANDOMIZE, index])
@@ -186,12 +187,12 @@ def randomize_line(
         physics.absorption,
     )
     calibration = dataclasses.replace(calibration, gain=calibration.gain * 10 ** (gain_db / 20))
-    sensor = dataclasses.replace(
-        physics.sensor, tilt_rad=sonar.tilt_rad, beam_width_rad=sonar.beam_width_rad
-    )
+    # the lines keep the survey's nominal sensor record (a survey has one sensor, and the
+    # CNN sees only intensity); the drawn values go to the metadata
     line_physics = _Physics(
-        dataclasses.replace(cfg, sonar=sonar), response, calibration, physics.absorption, sensor
-    )
+        dataclasses.replace(cfg, sonar=sonar), response, calibration, physics.absorption,
+        physics.sensor,
+    )  # fmt: skip
     drawn = {
         "tilt_deg": round(math.degrees(sonar.tilt_rad), 3),
         "beam_width_deg": round(math.degrees(sonar.beam_width_rad), 3),
