@@ -211,3 +211,27 @@ def test_encoding_parameters_get_their_own_learning_rate():
     assert sum(p.numel() for g in groups for p in g["params"]) == n_all
     with pytest.raises(ValueError, match="encoding_lr: expected a positive learning rate"):
         SirenModule(Siren(hidden=8, n_layers=3), sensor=None, encoding_lr=0.0)
+
+
+def test_holdout_scores_are_logged_beside_the_mbes_ones(tmp_path, tiny_survey):
+    """Held-out altimeter points: the map's and the interpolation's MAE at every evaluation
+    and in metrics.json, with MBES metrics alongside when there is a grid."""
+    cfg = _compose(
+        tmp_path, "siren_gt_n2d", tiny_survey, ["model.sensor=null", "data.holdout.block_pings=10"]
+    )
+    trainer, model, dm = _fit_from_config(cfg)
+    split = dm.holdout_split
+    assert split is not None and split.n_held > 0
+    # the fit never saw the held-out points
+    assert dm.altimeter.shape[0] + split.n_held == dm.table.n_pings - 2  # 2 missing readings
+    m = trainer.callback_metrics
+    assert "val/mae" in m and np.isfinite(float(m["val/holdout_alt_mae"]))
+    assert float(m["val/holdout_interp_mae"]) == pytest.approx(split.interp_mae, abs=1e-6)
+    with torch.no_grad():
+        z = model.siren.height(torch.from_numpy(split.held[:, :2].astype(np.float32)))
+    expected = np.abs(z.numpy() - split.held[:, 2]).mean()
+    assert float(m["val/holdout_alt_mae"]) == pytest.approx(expected, rel=1e-4, abs=1e-5)
+    final = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert final["final/holdout_alt_mae"] == pytest.approx(expected, rel=1e-4, abs=1e-5)
+    assert final["final/holdout_n"] == split.n_held
+    assert model.final_metrics["final/holdout_interp_mae"] == pytest.approx(split.interp_mae)

@@ -1,0 +1,220 @@
+"""The sidescan-only route: optimized_metric fallback, and ``sss2bathy-map`` / ``sss2bathy-train``
+on a tiny XTF survey without MBES (generated here with the simulator and ``write_xtf``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from sss2bathy.cli.map import MapResult, default_survey_name, map_experiment, train_overrides
+from sss2bathy.cli.train import HOLDOUT_METRIC, optimized_value
+
+ROOT = Path(__file__).resolve().parents[2]
+CONF = ROOT / "conf"
+
+
+# ------------------------------------------------------------------ fast: the fallback
+def test_optimized_metric_falls_back_to_the_holdout_score_without_mbes(caplog):
+    logged = {"train/loss": 0.5, HOLDOUT_METRIC: 0.25, "val/holdout_interp_mae": 0.3}
+    assert optimized_value("val/mae", {**logged, "val/mae": 0.1}, has_mbes=False) == (
+        "val/mae",
+        0.1,
+    )
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.train"):
+        assert optimized_value("val/mae", logged, has_mbes=False) == (HOLDOUT_METRIC, 0.25)
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "val/holdout_alt_mae" in warnings[0].getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.train"):
+        assert optimized_value("val/mae", {"train/loss": 0.5}, has_mbes=False) == (None, None)
+    assert len([r for r in caplog.records if r.levelno == logging.WARNING]) == 1
+    assert optimized_value(None, logged, has_mbes=False) == (None, None)
+    # with MBES a metric that was not logged is a configuration error
+    with pytest.raises(KeyError, match="optimized_metric 'val/mae' was not logged"):
+        optimized_value("val/mae", logged, has_mbes=True)
+
+
+def test_map_config_picks_the_method_and_the_survey_name():
+    cfg = OmegaConf.load(CONF / "map.yaml")
+    assert map_experiment({"cnn_checkpoint": None}) == "siren_lambert"
+    assert map_experiment({"cnn_checkpoint": "x.ckpt"}) == "siren_cnn_n2d"
+    assert map_experiment({"method": "siren_heights_only"}) == "siren_heights_only"
+    overrides = train_overrides(
+        {"overrides": ["trainer.max_epochs=3"]}, {"scale": "tiny", "logger": "none"}
+    )
+    assert overrides == [
+        "experiment=siren_lambert",
+        "data/survey=xtf",
+        "scale=tiny",
+        "logger=none",
+        "trainer.max_epochs=3",
+    ]
+    assert cfg.holdout.fraction > 0  # every map run is scored on held-out altimeter points
+    assert default_survey_name("/data/my lines/") == "xtf_my_lines"
+    assert default_survey_name(["/d/L01.xtf", "/d/L02.xtf"]) == "xtf_L01"
+    assert default_survey_name("/d/run3/*_HF.xtf") == "xtf_run3"
+    assert default_survey_name("/d/xtf_2024") == "xtf_2024"
+
+
+def test_map_summary_says_whether_the_fit_beat_interpolation(tmp_path):
+    metrics = {"final/holdout_alt_mae": 0.1, "final/holdout_interp_mae": 0.2, "final/holdout_n": 9}
+    text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", metrics, False).summary())
+    assert str(tmp_path / "map.tif") in text and str(tmp_path / "metrics.json") in text
+    assert "0.100 m (fit) vs 0.200 m" in text and "ratio 0.50" in text and "beats" in text
+    worse = {"val/holdout_alt_mae": 0.3, "val/holdout_interp_mae": 0.2}
+    text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", worse, False).summary())
+    assert "does NOT beat" in text
+    text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", {}, False).summary())
+    assert "none held out" in text
+
+
+# ------------------------------------------------------------------ end to end
+@pytest.fixture(scope="module")
+def tiny_xtf(tmp_path_factory) -> tuple[Path, str]:
+    """The simulator's tiny test lines (57 and 43 pings) written as XTF files."""
+    from sss2bathy.io.xtf import write_xtf
+    from sss2bathy.sim import config as sim_config
+    from sss2bathy.sim import generate
+
+    cfg = OmegaConf.merge(
+        OmegaConf.load(CONF / "data/survey/synthetic_d1.yaml"),
+        OmegaConf.load(CONF / "survey_scale/synthetic_d1_tiny.yaml"),
+    )
+    cfg.name = "sim_tiny"
+    survey, _ = generate.generate_survey(
+        sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
+    )
+    folder = tmp_path_factory.mktemp("xtf") / "lines"
+    for line in survey.split_lines("test"):
+        write_xtf(line, folder / f"{line.name}.xtf", survey.origin)
+    return folder, survey.origin["crs"]
+
+
+def _run(module: str, args: list[str], tmp: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=tmp,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def _common(tmp: Path) -> list[str]:
+    return [
+        f"paths.data_dir={tmp / 'data'}",
+        f"paths.output_dir={tmp / 'outputs'}",
+        "scale=tiny",
+        "logger=none",
+        "torch_threads=1",
+    ]
+
+
+def test_sss2bathy_map_on_an_xtf_survey_without_mbes(tmp_path, tiny_xtf):
+    folder, crs = tiny_xtf
+    run = tmp_path / "run"
+    proc = _run(
+        "sss2bathy.cli.map",
+        [
+            f"files={folder}",
+            f"survey.crs={crs}",
+            "survey.n_bins=null",
+            "holdout.block_pings=10",
+            f"hydra.run.dir={run}",
+            'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
+            *_common(tmp_path),
+        ],
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in ("map.tif", "map.png", "metrics.json"):
+        assert (run / name).is_file()
+        assert str(run / name) in proc.stdout  # printed where they are
+    metrics = json.loads((run / "metrics.json").read_text())
+    for key in ("val/holdout_alt_mae", "val/holdout_interp_mae", "final/holdout_alt_mae"):
+        assert np.isfinite(metrics[key]), key
+    assert "val/mae" not in metrics  # no MBES
+    assert metrics["final/holdout_n"] > 0
+    assert "held-out altimeter MAE" in proc.stdout
+    assert (tmp_path / "data" / "xtf_lines" / "survey.yaml").is_file()  # the imported survey
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("experiment", ["siren_heights_only", "siren_lambert"])
+def test_sss2bathy_train_without_mbes_exits_0(tmp_path, tiny_xtf, experiment):
+    """The issue's failure: optimized_metric val/mae with no MBES used to raise a KeyError."""
+    folder, crs = tiny_xtf
+    run = tmp_path / "run"
+    proc = _run(
+        "sss2bathy.cli.train",
+        [
+            f"experiment={experiment}",
+            "data/survey=xtf",
+            f"data.survey.files={folder}",
+            f"data.survey.crs={crs}",
+            "data.survey.n_bins=null",
+            "data.holdout.block_pings=10",
+            "callbacks=none",
+            "trainer.enable_progress_bar=false",
+            f"hydra.run.dir={run}",
+            f"model.output_dir={run}",
+            *_common(tmp_path),
+        ],
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "returning val/holdout_alt_mae" in proc.stderr + proc.stdout
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert np.isfinite(metrics["val/holdout_alt_mae"])
+    assert (run / "map.tif").is_file() and (run / "map.png").is_file()
+
+
+@pytest.mark.slow
+def test_sss2bathy_map_with_a_cnn_checkpoint(tmp_path, tiny_xtf):
+    """SIREN-CNN-N2d on the XTF survey with a CNN trained elsewhere (tiny synthetic run)."""
+    folder, crs = tiny_xtf
+    cnn_run = tmp_path / "cnn"
+    proc = _run(
+        "sss2bathy.cli.train",
+        ["experiment=cnn", "trainer.enable_progress_bar=false", f"hydra.run.dir={cnn_run}"]
+        + _common(tmp_path),
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ckpt = cnn_run / "checkpoints" / "last.ckpt"
+    run = tmp_path / "run"
+    proc = _run(
+        "sss2bathy.cli.map",
+        [
+            f"files={folder}",
+            f"cnn_checkpoint={ckpt}",
+            f"survey.crs={crs}",
+            "survey.n_bins=null",
+            "holdout.block_pings=10",
+            f"hydra.run.dir={run}",
+            'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
+            *_common(tmp_path),
+        ],
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "siren_cnn_n2d" in proc.stdout
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert np.isfinite(metrics["final/holdout_alt_mae"]) and (run / "map.tif").is_file()
+    # a missing checkpoint is refused by name
+    proc = _run(
+        "sss2bathy.cli.map",
+        [f"files={folder}", f"cnn_checkpoint={tmp_path / 'nope.ckpt'}", *_common(tmp_path)],
+        tmp_path,
+    )
+    assert proc.returncode != 0 and "cnn_checkpoint: expected a CNN checkpoint file" in proc.stderr
