@@ -222,6 +222,23 @@ def _validate_groups(cfg: DictConfig) -> None:
     _validate_survey(_plain(cfg, "data.survey"), "data.survey")
     for i, extra in enumerate(_plain(cfg, "data.test_surveys") or []):
         _validate_survey(extra, f"data.test_surveys[{i}]")
+    sonar_mask = _plain(cfg, "data.sonar_mask")
+    if sonar_mask is not None:
+        from sss2bathy.data.masks import SonarMaskConfig
+
+        try:
+            SonarMaskConfig.coerce(sonar_mask)
+        except ValueError as err:
+            raise _group_error(err, "sonar_mask", "data.sonar_mask") from None
+    for key in ("data.input_channels", "model.input_channels"):
+        channels = _plain(cfg, key)
+        if channels is not None:
+            from sss2bathy.data.masks import check_channels
+
+            try:
+                check_channels(channels, key)
+            except ValueError as err:
+                raise _group_error(err) from None
     drape = _plain(cfg, "data.drape")
     if isinstance(drape, dict):
         from sss2bathy.draping import DrapeConfig

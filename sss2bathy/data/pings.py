@@ -24,11 +24,16 @@ Normals and masks (``normals``):
 * ``"gt"`` — lines draped on the MBES grid (:func:`sss2bathy.draping.drape_survey`):
   the draped ``n_lat`` and mask (SIREN-GT-N2d).
 * ``"cnn"`` — CNN predictions (:func:`sss2bathy.modules.predict.predict_normals`); the
-  mask is the draped mask where the survey has a grid, else the sonar-only mask, OR-ed with
-  the prediction's mask (SIREN-CNN-N2d).
-* ``"none"`` — no normal targets (``n_lat`` all NaN) and the sonar-only mask: water column
-  where the slant range is below the altitude (plus no-hit where altitude or intensity is
-  missing); for surveys without MBES (the Lambertian fit, real data).
+  mask is the sonar-only mask OR-ed with the prediction's (SIREN-CNN-N2d). Nothing is
+  draped: the result is the same with or without an MBES grid.
+* ``"none"`` — no normal targets (``n_lat`` all NaN) and the very same sonar-only mask
+  (:func:`sss2bathy.data.masks.sonar_mask`: water column and beam limits from the altitude,
+  shadows from the intensity, no-hit where altitude or intensity is missing); for surveys
+  without MBES (the Lambertian fit, real data).
+
+The sonar-only mask's parameters are ``sonar_mask`` (``data.sonar_mask``,
+:class:`~sss2bathy.data.masks.SonarMaskConfig`); intensities (``need_intensity``) are
+normalised over the table's valid bins.
 
 The SIREN's frame never looks at the MBES grid: :attr:`bounds` are the sonar tracks
 expanded by the largest slant range (everything a bin can reach), :attr:`z_range` the
@@ -113,15 +118,12 @@ class PingTable:
         return batch
 
 
-def sidescan_only_mask(line: Any) -> np.ndarray:
-    """``(P, 2, B)`` uint8 mask from the sonar alone (no MBES): the CNN stage's rule.
+def sidescan_only_mask(line: Any, sonar_mask: Mapping[str, Any] | None = None) -> np.ndarray:
+    """``(P, 2, B)`` uint8 mask from the sonar alone (no MBES), shared by ``normals=none``
+    and ``normals=cnn``: :func:`sss2bathy.data.masks.sonar_only_mask`."""
+    from sss2bathy.data.masks import sonar_only_mask
 
-    Delegates to :func:`sss2bathy.modules.predict.sonar_only_mask` so that ``normals=none``
-    and ``normals=cnn`` without a grid mask bins identically.
-    """
-    from sss2bathy.modules.predict import sonar_only_mask
-
-    return sonar_only_mask(line)
+    return sonar_only_mask(line, sonar_mask)
 
 
 def latest_checkpoint(runs_dir: str | Path) -> Path:
@@ -146,6 +148,7 @@ def build_ping_table(
     window: Mapping[str, Any] | None = None,
     need_intensity: bool = False,
     drape: Mapping[str, Any] | None = None,
+    sonar_mask: Mapping[str, Any] | None = None,
 ) -> PingTable:
     """Concatenate the lines' navigation, targets and masks into one :class:`PingTable`.
 
@@ -156,8 +159,14 @@ def build_ping_table(
         cnn_checkpoint: CNN checkpoint path (``normals="cnn"``).
         window: the CNN's window settings; ``None``: those stored in the checkpoint.
         need_intensity: also hold normalised intensities (Lambertian sensor model).
-        drape: :class:`~sss2bathy.draping.DrapeConfig` fields, or ``None`` for defaults.
+        drape: :class:`~sss2bathy.draping.DrapeConfig` fields, or ``None`` for defaults
+            (``normals="gt"`` only).
+        sonar_mask: :class:`~sss2bathy.data.masks.SonarMaskConfig` fields (``None``:
+            defaults), the mask of ``normals="cnn"`` and ``"none"``.
     """
+    from sss2bathy.data.masks import SonarMaskConfig
+
+    sonar_mask = SonarMaskConfig.coerce(sonar_mask)
     if normals not in NORMAL_SOURCES:
         raise ValueError(f"normals: expected one of {NORMAL_SOURCES}, found {normals!r}")
     lines = [survey.line(n) for n in line_names]
@@ -171,7 +180,7 @@ def build_ping_table(
                 f"({range_m.shape[0]} bins), found different ones ({ln.range_m.shape[0]} bins)"
             )
     draped = None
-    if normals == "gt" or (normals == "cnn" and survey.grid is not None):
+    if normals == "gt":
         from sss2bathy.draping import drape_survey
 
         draped = drape_survey(survey, survey_dir, cfg=drape, lines=list(line_names))
@@ -186,7 +195,7 @@ def build_ping_table(
             survey,
             survey_dir,
             list(line_names),
-            draped,
+            None,
             dict(window) if window is not None else None,
         )
     n_lat, masks, intensity = [], [], []
@@ -194,7 +203,7 @@ def build_ping_table(
         if draped is not None:
             mask = draped[ln.name].mask.copy()
         else:
-            mask = sidescan_only_mask(ln)
+            mask = sidescan_only_mask(ln, sonar_mask)
         if normals == "gt":
             target = draped[ln.name].n_lat
         elif normals == "cnn":
@@ -370,6 +379,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         seed: seed of the ping order and of the altimeter draws.
         device_resident: keep the table on the trainer's device (no per-step copies).
         drape: draping config (:class:`~sss2bathy.draping.DrapeConfig` fields) or ``None``.
+        sonar_mask: sonar-only mask parameters (:class:`~sss2bathy.data.masks.SonarMaskConfig`
+            fields) or ``None`` (defaults); ``normals="cnn"`` and ``"none"``.
         z_margin: fraction of the altimeter height span added on either side of
             :attr:`z_range`; ``z_margin_m`` is the least margin (m).
         holdout: held-out altimeter evaluation (``fraction``, ``block_pings``, ``seed``;
@@ -394,6 +405,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         seed: int = 0,
         device_resident: bool = True,
         drape: Mapping[str, Any] | None = None,
+        sonar_mask: Mapping[str, Any] | None = None,
         z_margin: float = 0.25,
         z_margin_m: float = 2.0,
         holdout: Mapping[str, Any] | None = None,
@@ -427,6 +439,11 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.seed = int(seed)
         self.device_resident = bool(device_resident)
         self.drape = drape
+        from sss2bathy.data.masks import SonarMaskConfig
+
+        self.sonar_mask = SonarMaskConfig.coerce(
+            None if sonar_mask is None else {str(k): v for k, v in dict(sonar_mask).items()}
+        ).to_dict()
         self.z_margin = float(z_margin)
         self.z_margin_m = float(z_margin_m)
         self.holdout = holdout_config(holdout, self.seed)
@@ -486,6 +503,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             self.window,
             self.need_intensity,
             self.drape,
+            self.sonar_mask,
         )
         alt = self._fit_altimeter(survey)
         if alt.shape[0] == 0:

@@ -15,7 +15,13 @@ worker seeding.
 
 Batches are dicts (``B`` = batch size, ``H`` = window pings, ``W`` = window bins):
 
-* ``intensity [B,1,H,W] float32`` — normalised (:mod:`sss2bathy.data.normalize`);
+* ``intensity [B,1,H,W] float32`` — normalised (:mod:`sss2bathy.data.normalize`) over the
+  bins valid in the **sonar-only** mask (:func:`sss2bathy.data.masks.sonar_mask`, parameters
+  ``sonar_mask``), exactly as at inference (:mod:`sss2bathy.modules.predict`): the draped
+  (MBES) mask only selects the pixels of the loss;
+* ``inputs [B,C,H,W] float32`` — the network's input channels ``input_channels``
+  (:func:`sss2bathy.data.masks.input_channels`: ``intensity`` first, then optionally
+  ``grazing`` = altitude / r on flat seabed and ``range`` = r / r_max);
 * ``n_lat [B,1,H,W] float32`` — draped head-plane normal, 0 at invalid pixels;
 * ``mask [B,1,H,W] bool`` — True = valid (mask 0 in the draping);
 * ``line [B] long`` — index into the dataset's ``line_names``; ``side [B] long`` (0 port,
@@ -37,7 +43,12 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.masks import (
+    SonarMaskConfig,
+    check_channels,
+    input_channels,
+    sonar_normalized_intensity,
+)
 from sss2bathy.draping import DrapeConfig, DrapedLine, drape_survey
 from sss2bathy.survey import SidescanLine, Survey
 
@@ -106,31 +117,61 @@ class WindowLine:
 
     Attributes:
         name: line name.
-        intensity: ``(P, 2, B)`` float32 normalised intensities.
+        intensity: ``(P, 2, B)`` float32 intensities normalised over the sonar-only valid bins.
         n_lat: ``(P, 2, B)`` float32 draped n_lat, 0 where invalid.
-        valid: ``(P, 2, B)`` bool, True where the draping mask is 0.
+        valid: ``(P, 2, B)`` bool, True where the draping mask is 0 (the loss's pixels).
+        altitude_m: ``(P,)`` altitude (m; NaN where missing), for the geometry channels.
+        range_m: ``(B,)`` slant ranges (m).
+        channels: the network's input channels (:func:`~sss2bathy.data.masks.input_channels`).
     """
 
     name: str
     intensity: np.ndarray
     n_lat: np.ndarray
     valid: np.ndarray
+    altitude_m: np.ndarray | None = None
+    range_m: np.ndarray | None = None
+    channels: tuple[str, ...] = ("intensity",)
 
     @classmethod
-    def from_draped(cls, line: SidescanLine, draped: DrapedLine) -> WindowLine:
-        """Normalise ``line``'s intensities over its valid bins and attach the draping."""
+    def from_draped(
+        cls,
+        line: SidescanLine,
+        draped: DrapedLine,
+        sonar_mask: SonarMaskConfig | Mapping[str, Any] | None = None,
+        channels: Sequence[str] | None = None,
+    ) -> WindowLine:
+        """Normalise ``line``'s intensities over its sonar-only valid bins (as at inference)
+        and attach the draping (the loss's targets and pixels)."""
         if draped.shape != line.intensity.shape:
             raise ValueError(
                 f"draped: expected shape {line.intensity.shape} of line '{line.name}', "
                 f"found {draped.shape}"
             )
         valid = draped.valid & np.isfinite(draped.n_lat) & np.isfinite(line.intensity)
+        intensity, _ = sonar_normalized_intensity(line, sonar_mask)
         return cls(
             name=line.name,
-            intensity=normalize_intensity(line.intensity, valid),
+            intensity=intensity,
             n_lat=np.where(valid, draped.n_lat, 0.0).astype(np.float32),
             valid=valid,
+            altitude_m=np.asarray(line.altitude_m, np.float32),
+            range_m=np.asarray(line.range_m, np.float32),
+            channels=check_channels(channels),
         )
+
+    def inputs(self, pings: slice, side: int, bins: slice) -> np.ndarray:
+        """``(C, h, w)`` float32 input channels of one window (unflipped)."""
+        x = self.intensity[pings, side, bins]
+        if self.channels == ("intensity",):
+            return x[None]
+        if self.altitude_m is None or self.range_m is None:
+            raise ValueError(
+                f"line '{self.name}': input channels {list(self.channels)} need altitude_m and "
+                "range_m (build the line with WindowLine.from_draped)"
+            )
+        r_max = float(np.max(self.range_m))
+        return input_channels(x, self.range_m[bins], self.altitude_m[pings], r_max, self.channels)
 
 
 class SidescanWindowDataset(Dataset):
@@ -246,12 +287,15 @@ class SidescanWindowDataset(Dataset):
         li, side, p0, b0 = (int(v) for v in self.index[item % n])
         ln = self.lines[li]
         win = (slice(p0, p0 + self.window_pings), side, slice(b0, b0 + self.window_bins))
+        inputs = ln.inputs(win[0], side, win[2])
         arrays = [ln.intensity[win], ln.n_lat[win], ln.valid[win]]
         if flipped:
             arrays = [a[::-1] for a in arrays]
+            inputs = inputs[:, ::-1]
         intensity, n_lat, valid = (torch.from_numpy(np.ascontiguousarray(a)) for a in arrays)
         return {
             "intensity": intensity.unsqueeze(0),
+            "inputs": torch.from_numpy(np.ascontiguousarray(inputs)),
             "n_lat": n_lat.unsqueeze(0),
             "mask": valid.unsqueeze(0),
             "line": torch.tensor(li, dtype=torch.long),
@@ -392,6 +436,10 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             included), the first of a permutation drawn with ``seed`` (a smaller set is part
             of a larger one); None: all. With the survey generated once for the largest
             count the test lines stay the same (:mod:`sss2bathy.eval.learning_curve`).
+        sonar_mask: the sonar-only mask the intensity is normalised over
+            (:class:`~sss2bathy.data.masks.SonarMaskConfig` fields; ``None``: defaults).
+        input_channels: the network's input channels (``None``: ``[intensity]``); stored in
+            the checkpoint with ``sonar_mask`` so prediction builds the same inputs.
     """
 
     def __init__(
@@ -411,6 +459,8 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         test_surveys: Sequence[Mapping[str, Any]] | None = None,
         seed: int = 0,
         n_train_lines: int | None = None,
+        sonar_mask: Mapping[str, Any] | None = None,
+        input_channels: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         if n_train_lines is not None and not (
@@ -421,6 +471,11 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                 f"data.n_train_lines: expected null or an integer >= 2, found {n_train_lines!r}"
             )
         self.n_train_lines = n_train_lines
+        mask_map = None if sonar_mask is None else _to_dict(sonar_mask, "sonar_mask")
+        self.sonar_mask = SonarMaskConfig.coerce(mask_map)
+        if input_channels is not None and not isinstance(input_channels, str):
+            input_channels = list(input_channels)
+        self.input_channels = check_channels(input_channels, "data.input_channels")
         self.survey_cfg = _survey_dict(survey, "survey")
         self.test_survey_cfgs = [
             _survey_dict(c, f"test_surveys[{i}]") for i, c in enumerate(test_surveys or [])
@@ -455,6 +510,8 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                 "test_surveys": self.test_survey_cfgs,
                 "seed": self.seed,
                 "n_train_lines": n_train_lines,
+                "sonar_mask": self.sonar_mask.to_dict(),
+                "input_channels": list(self.input_channels),
             },
             logger=False,
         )
@@ -473,7 +530,10 @@ class SidescanWindowDataModule(pl.LightningDataModule):
 
     def _window_lines(self, survey: Survey, folder: Path, names: list[str]) -> list[WindowLine]:
         draped = drape_survey(survey, folder, self.drape_cfg, lines=names)
-        return [WindowLine.from_draped(survey.line(n), draped[n]) for n in names]
+        return [
+            WindowLine.from_draped(survey.line(n), draped[n], self.sonar_mask, self.input_channels)
+            for n in names
+        ]
 
     def _dataset(self, lines: list[WindowLine], name: str, train: bool) -> SidescanWindowDataset:
         return SidescanWindowDataset(

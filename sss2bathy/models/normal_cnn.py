@@ -7,6 +7,12 @@ convolution, two stride-2 3x3 convolutions that double the width, ``n_blocks`` r
 blocks at 1/4 resolution, two stride-2 transposed convolutions back to full resolution and
 a reflection-padded 7x7 convolution to one channel followed by ``tanh`` (n_lat in [-1, 1]).
 InstanceNorm has no affine parameters and the convolutions carry biases, as in pix2pix.
+
+Receptive field (:func:`receptive_field`): 89 pixels with the defaults' 2 down-samplings and
+4 residual blocks (``2 * n_blocks`` 3x3 convolutions at 1/4 resolution); the options
+``n_down`` (more down-sampling stages, width doubling each) and ``dilation`` (dilated 3x3
+convolutions in the residual blocks) widen it cheaply, e.g. ``dilation=2`` gives 153,
+``n_down=3`` 169 (4 blocks).
 """
 
 from __future__ import annotations
@@ -16,10 +22,27 @@ from typing import Any
 import torch
 from torch import nn
 
-N_DOWN = 2  # stride-2 stages; input height and width must be divisible by 2**N_DOWN
+N_DOWN = 2  # default stride-2 stages; input height and width must be divisible by 2**n_down
 SIZE_MULTIPLE = 2**N_DOWN
 # the reflection pad of the residual blocks needs >= 2 rows/columns at 1/4 resolution
 MIN_SIZE = 2 * SIZE_MULTIPLE
+
+
+def receptive_field(
+    n_blocks: int, outer_kernel: int = 7, n_down: int = N_DOWN, dilation: int = 1
+) -> int:
+    """Receptive field (pixels, per axis) of :class:`NormalResNet` with these settings (an
+    upper bound: the transposed convolutions make it up to 4 pixels smaller at some
+    output pixels)."""
+    rf, jump = 1, 1
+    layers = [(outer_kernel, 1, 1)] + [(3, 2, 1)] * n_down + [(3, 1, dilation)] * (2 * n_blocks)
+    for kernel, stride, dil in layers:
+        rf += (kernel - 1) * dil * jump
+        jump *= stride
+    for _ in range(n_down):  # transposed 3x3 stride 2: one input pixel either side
+        jump //= 2
+        rf += 2 * jump
+    return rf + outer_kernel - 1
 
 
 def _norm(channels: int) -> nn.InstanceNorm2d:
@@ -29,19 +52,19 @@ def _norm(channels: int) -> nn.InstanceNorm2d:
 class ResidualBlock(nn.Module):
     """``x + F(x)`` with F = pad-conv3x3-IN-ReLU-[dropout]-pad-conv3x3-IN; shape preserved."""
 
-    def __init__(self, channels: int, use_dropout: bool = False) -> None:
+    def __init__(self, channels: int, use_dropout: bool = False, dilation: int = 1) -> None:
         super().__init__()
         layers: list[nn.Module] = [
-            nn.ReflectionPad2d(1),
-            nn.Conv2d(channels, channels, kernel_size=3),
+            nn.ReflectionPad2d(dilation),
+            nn.Conv2d(channels, channels, kernel_size=3, dilation=dilation),
             _norm(channels),
             nn.ReLU(inplace=True),
         ]
         if use_dropout:
             layers.append(nn.Dropout(0.5))
         layers += [
-            nn.ReflectionPad2d(1),
-            nn.Conv2d(channels, channels, kernel_size=3),
+            nn.ReflectionPad2d(dilation),
+            nn.Conv2d(channels, channels, kernel_size=3, dilation=dilation),
             _norm(channels),
         ]
         self.body = nn.Sequential(*layers)
@@ -61,9 +84,12 @@ class NormalResNet(nn.Module):
         n_blocks: residual blocks (7 in the paper).
         outer_kernel: odd kernel size of the first and last convolution (7).
         use_dropout: dropout 0.5 inside the residual blocks.
+        n_down: stride-2 down-sampling (and up-sampling) stages (2 in the paper).
+        dilation: dilation of the residual blocks' 3x3 convolutions (1 in the paper).
 
-    ``H`` and ``W`` must be multiples of 4 and at least 8 so that the output has the input's
-    size; :meth:`forward` raises ``ValueError`` otherwise.
+    ``H`` and ``W`` must be multiples of ``2**n_down`` and at least ``2**n_down *
+    max(2, dilation + 1)`` so that the output has the input's size; :meth:`forward` raises
+    ``ValueError`` otherwise.
     """
 
     def __init__(
@@ -73,12 +99,16 @@ class NormalResNet(nn.Module):
         n_blocks: int = 7,
         outer_kernel: int = 7,
         use_dropout: bool = False,
+        n_down: int = N_DOWN,
+        dilation: int = 1,
     ) -> None:
         super().__init__()
         for name, value, minimum in (
             ("in_channels", in_channels, 1),
             ("base_width", base_width, 1),
             ("n_blocks", n_blocks, 0),
+            ("n_down", n_down, 1),
+            ("dilation", dilation, 1),
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"{name}: expected an integer >= {minimum}, found {value!r}")
@@ -96,6 +126,10 @@ class NormalResNet(nn.Module):
         self.n_blocks = n_blocks
         self.outer_kernel = outer_kernel
         self.use_dropout = bool(use_dropout)
+        self.n_down = n_down
+        self.dilation = dilation
+        self.size_multiple = 2**n_down
+        self.min_size = self.size_multiple * max(2, dilation + 1)
 
         pad = outer_kernel // 2
         layers: list[nn.Module] = [
@@ -105,15 +139,15 @@ class NormalResNet(nn.Module):
             nn.ReLU(inplace=True),
         ]
         width = base_width
-        for _ in range(N_DOWN):
+        for _ in range(n_down):
             layers += [
                 nn.Conv2d(width, 2 * width, kernel_size=3, stride=2, padding=1),
                 _norm(2 * width),
                 nn.ReLU(inplace=True),
             ]
             width *= 2
-        layers += [ResidualBlock(width, self.use_dropout) for _ in range(n_blocks)]
-        for _ in range(N_DOWN):
+        layers += [ResidualBlock(width, self.use_dropout, dilation) for _ in range(n_blocks)]
+        for _ in range(n_down):
             layers += [
                 nn.ConvTranspose2d(
                     width, width // 2, kernel_size=3, stride=2, padding=1, output_padding=1
@@ -139,6 +173,8 @@ class NormalResNet(nn.Module):
             "n_blocks": self.n_blocks,
             "outer_kernel": self.outer_kernel,
             "use_dropout": self.use_dropout,
+            "n_down": self.n_down,
+            "dilation": self.dilation,
         }
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -150,9 +186,9 @@ class NormalResNet(nn.Module):
         h, w = int(x.shape[-2]), int(x.shape[-1])
         pad = self.outer_kernel // 2
         for name, size in (("H", h), ("W", w)):
-            if size % SIZE_MULTIPLE or size < MIN_SIZE or size <= pad:
+            if size % self.size_multiple or size < self.min_size or size <= pad:
                 raise ValueError(
-                    f"x: expected {name} a multiple of {SIZE_MULTIPLE} and >= "
-                    f"{max(MIN_SIZE, pad + 1)}, found {name}={size} (shape {tuple(x.shape)})"
+                    f"x: expected {name} a multiple of {self.size_multiple} and >= "
+                    f"{max(self.min_size, pad + 1)}, found {name}={size} (shape {tuple(x.shape)})"
                 )
         return self.layers(x)

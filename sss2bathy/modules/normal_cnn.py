@@ -1,8 +1,9 @@
 """LightningModule training the normal CNN, and its callbacks (validation images, CNN table).
 
 Batches are dicts (see ``sss2bathy.data`` windows): ``intensity [B,1,H,W] float32``,
-``n_lat [B,1,H,W] float32``, ``mask [B,1,H,W] bool`` (True = valid) plus ``line, side,
-ping_start, bin_start [B] long`` and ``flipped [B] bool`` (unused here).
+``n_lat [B,1,H,W] float32``, ``mask [B,1,H,W] bool`` (True = valid), optionally ``inputs
+[B,C,H,W] float32`` (the network's input channels; absent: the intensity alone) plus ``line,
+side, ping_start, bin_start [B] long`` and ``flipped [B] bool`` (unused here).
 
 Logged keys: ``{stage}/loss`` and each loss term (``{stage}/loss_na``, ``{stage}/loss_tv``),
 ``{stage}/{mae,rel,rmse,delta1,delta2,delta3}`` for ``train`` and ``val``; test metrics are
@@ -14,7 +15,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +69,12 @@ class NormalCNNModule(pl.LightningModule):
             come from :class:`NormalImageLogger`, added by :meth:`configure_callbacks`.
         n_images: number of fixed validation windows shown.
         compile: ``torch.compile`` the network for fitting.
+        input_channels: names of the network's input channels
+            (:data:`sss2bathy.data.masks.CHANNELS`; ``None``: ``[intensity]``), stored in the
+            checkpoint so prediction builds the same inputs. ``net`` may be a factory
+            ``net(in_channels=...)`` (Hydra ``_partial_: true``), built with one input per
+            channel; a built network must have ``in_channels`` equal to their number.
+        channels_last: run the network in ``torch.channels_last`` memory format.
 
     The checkpoint's hyper-parameters hold plain values only (``net_config``: the network's
     class path and arguments), so ``torch.load(weights_only=True)`` can read it and
@@ -83,10 +90,31 @@ class NormalCNNModule(pl.LightningModule):
         image_every_n_epochs: int = 5,
         n_images: int = 4,
         compile: bool = False,
+        input_channels: Sequence[str] | None = None,
+        channels_last: bool = False,
     ) -> None:
         super().__init__()
+        from sss2bathy.data.masks import check_channels
+
+        if input_channels is not None and not isinstance(input_channels, str):
+            input_channels = list(input_channels)
+        channels = check_channels(input_channels, "model.input_channels")
+        if not isinstance(net, nn.Module) and callable(net):
+            given = getattr(net, "keywords", {}).get("in_channels")
+            if given is not None and given != len(channels):
+                raise ValueError(
+                    f"model.net.in_channels: expected null or {len(channels)} (one per input "
+                    f"channel {list(channels)}), found {given}"
+                )
+            net = net(in_channels=len(channels))
         if not isinstance(net, nn.Module):
             raise ValueError(f"net: expected a torch.nn.Module, found {type(net).__name__}")
+        n_in = getattr(net, "in_channels", None)
+        if n_in is not None and n_in != len(channels):
+            raise ValueError(
+                f"model.net.in_channels: expected {len(channels)} (one per input channel "
+                f"{list(channels)}), found {n_in}"
+            )
         if not callable(optimizer):
             raise ValueError(
                 f"optimizer: expected a factory optimizer(params=...), found {optimizer!r}"
@@ -109,6 +137,8 @@ class NormalCNNModule(pl.LightningModule):
                 "image_every_n_epochs": image_every_n_epochs,
                 "n_images": n_images,
                 "compile": bool(compile),
+                "input_channels": list(channels),
+                "channels_last": bool(channels_last),
             },
             logger=False,
         )
@@ -118,18 +148,28 @@ class NormalCNNModule(pl.LightningModule):
         self.final_metrics: dict[str, float] = {}
 
     # ----------------------------------------------------------------- model
-    def forward(self, intensity: torch.Tensor) -> torch.Tensor:
-        """``intensity [B, 1, H, W]`` -> n_lat ``[B, 1, H, W]``."""
-        return self.net(intensity)
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        """``inputs [B, C, H, W]`` (C input channels) -> n_lat ``[B, 1, H, W]``."""
+        if self.hparams.get("channels_last", False):
+            inputs = inputs.contiguous(memory_format=torch.channels_last)
+        return self.net(inputs)
+
+    @staticmethod
+    def batch_inputs(batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The network input of a batch: ``inputs`` when present, else ``intensity``."""
+        return batch["inputs"] if "inputs" in batch else batch["intensity"]
 
     def setup(self, stage: str) -> None:
+        if self.hparams.get("channels_last", False):
+            self.net = self.net.to(memory_format=torch.channels_last)
         already_compiled = hasattr(self.net, COMPILED_PREFIX.rstrip("."))
         if self.hparams.compile and stage == "fit" and not already_compiled:
             self.net = torch.compile(self.net)
 
     @staticmethod
-    def check_batch(batch: Mapping[str, torch.Tensor]) -> None:
-        """Raise ``ValueError`` naming the key if ``batch`` lacks or mis-shapes a field."""
+    def check_batch(batch: Mapping[str, torch.Tensor], n_inputs: int = 1) -> None:
+        """Raise ``ValueError`` naming the key if ``batch`` lacks or mis-shapes a field
+        (``n_inputs``: the network's input channels; ``inputs`` is required when > 1)."""
         if not isinstance(batch, Mapping):
             raise ValueError(f"batch: expected a dict with keys {BATCH_KEYS}, found {type(batch)}")
         for key in BATCH_KEYS:
@@ -144,6 +184,19 @@ class NormalCNNModule(pl.LightningModule):
                     f"batch['{key}']: expected intensity's shape {shape}, "
                     f"found {tuple(batch[key].shape)}"
                 )
+        if "inputs" in batch:
+            got = tuple(batch["inputs"].shape)
+            n_in = n_inputs
+            if len(got) != 4 or got[0] != shape[0] or got[2:] != shape[2:] or got[1] != n_in:
+                raise ValueError(
+                    f"batch['inputs']: expected shape [{shape[0]}, {n_in}, {shape[2]}, "
+                    f"{shape[3]}] (one plane per input channel), found {got}"
+                )
+        elif n_inputs != 1:
+            raise ValueError(
+                f"batch: missing key 'inputs' for {n_inputs} input channels; found keys "
+                f"{sorted(batch)}"
+            )
         if batch["mask"].dtype != torch.bool:
             raise ValueError(
                 f"batch['mask']: expected dtype torch.bool, found {batch['mask'].dtype}"
@@ -153,8 +206,8 @@ class NormalCNNModule(pl.LightningModule):
         self, batch: Mapping[str, torch.Tensor]
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """Forward + loss, shared by all stages: ``(loss terms dict, prediction [B,1,H,W])``."""
-        self.check_batch(batch)
-        pred = self(batch["intensity"])
+        self.check_batch(batch, len(self.hparams.get("input_channels") or [1]))
+        pred = self(self.batch_inputs(batch))
         return self.loss_fn(pred, batch["n_lat"], batch["mask"]), pred
 
     def _log_losses(
@@ -353,7 +406,8 @@ class NormalImageLogger(pl.Callback):
             return
         valid = batch["mask"].flatten(1).sum(1)
         pick = torch.argsort(valid, descending=True, stable=True)[: self.n_images]
-        self.windows = {k: batch[k][pick].detach().cpu().clone() for k in BATCH_KEYS}
+        keys = [*BATCH_KEYS, *(["inputs"] if "inputs" in batch else [])]
+        self.windows = {k: batch[k][pick].detach().cpu().clone() for k in keys}
         gt = self.windows["n_lat"][self.windows["mask"]].abs()
         if gt.numel():
             # colour range from the shown windows' ground truth (n_lat is mostly near 0)
@@ -366,7 +420,8 @@ class NormalImageLogger(pl.Callback):
         if trainer.current_epoch % self.every_n_epochs:
             return
         with torch.no_grad():
-            pred = pl_module(self.windows["intensity"].to(pl_module.device)).float().cpu()
+            inputs = NormalCNNModule.batch_inputs(self.windows)
+            pred = pl_module(inputs.to(pl_module.device)).float().cpu()
         for i in range(pred.shape[0]):
             panel = render_window_panel(
                 self.windows["intensity"][i, 0].numpy(),

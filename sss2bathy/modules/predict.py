@@ -3,18 +3,25 @@
 Each head of each line is cut into windows of ``window_pings x window_bins`` with the
 training overlap (origins from :func:`sss2bathy.data.windows.line_windows`: a regular
 stride, the last window flush with the end), the windows run through the network in
-batches, and overlapping predictions are averaged back into the ``(P, 2, B)`` waterfall. Lines shorter than a window are zero-padded (and the
-padding cropped off); intensity is normalised exactly as for training
-(``sss2bathy.data.normalize.normalize_intensity``).
+batches, and overlapping predictions are averaged back into the ``(P, 2, B)`` waterfall.
+Lines shorter than a window are zero-padded (and the padding cropped off).
 
-Masks: with ``draped`` lines (the MBES-draped survey) the result's mask is a copy of the
-draped mask. Without them (a survey with no MBES) it is the sonar-only mask of
-:func:`sonar_only_mask`: water column from the altimeter, no-hit where altitude or intensity
-is missing; shadows can not be told without a mesh. Invalid bins hold NaN in ``n_lat``.
+Inputs come from the sidescan alone, exactly as in training
+(:class:`sss2bathy.data.windows.WindowLine`): the intensity is normalised over the bins
+valid in the sonar-only mask (:func:`sss2bathy.data.masks.sonar_mask`, with the
+``sonar_mask`` parameters the checkpoint was trained with), and the input channels
+(``input_channels`` of the checkpoint; old checkpoints: intensity only) are stacked by
+:func:`sss2bathy.data.masks.input_channels`. The MBES grid is never looked at: the result
+is the same with or without one.
+
+Masks: the result's mask is the sonar-only mask; ``draped`` lines (optional, for display
+and scoring only) are OR-ed into the returned mask and never change a prediction.
+Invalid bins hold NaN in ``n_lat``.
 
 Results are cached per line under ``survey_dir/predictions/<key>/<line>.npz`` where ``key``
-hashes the checkpoint file's content, the window size and overlap and the mask source; a
-cached file whose key, shape or mask does not match is recomputed with a warning.
+hashes the checkpoint file's content, the window size and overlap, the input channels and
+the sonar-mask parameters; a cached file whose key, shape or mask does not match is
+recomputed with a warning.
 """
 
 from __future__ import annotations
@@ -29,16 +36,23 @@ import numpy as np
 import torch
 from torch import nn
 
-from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.masks import (
+    DEFAULT_CHANNELS,
+    SonarMaskConfig,
+    check_channels,
+    input_channels,
+    sonar_normalized_intensity,
+    sonar_only_mask,
+)
 from sss2bathy.data.windows import line_windows
-from sss2bathy.survey import MASK_NO_HIT, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
+from sss2bathy.survey import MASK_VALID, Survey
 from sss2bathy.utils.atomic import atomic_path, file_sha256, stable_hash
 
 log = logging.getLogger(__name__)
 
 NET_PACKAGE = "sss2bathy.models."
 COMPILED_PREFIX = "_orig_mod."
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: sonar-only input normalisation, input channels in the key
 
 
 # --------------------------------------------------------------------- windows
@@ -140,8 +154,9 @@ def predict_waterfall(
     """Run ``net`` over both heads of a normalised waterfall and stitch by averaging.
 
     Args:
-        net: ``[B, 1, h, w]`` -> ``[B, 1, h, w]``.
-        intensity: ``(P, 2, B)`` normalised intensity (finite).
+        net: ``[B, C, h, w]`` -> ``[B, 1, h, w]``.
+        intensity: ``(P, 2, B)`` normalised intensity, or ``(P, 2, C, B)`` input channels
+            (:func:`sss2bathy.data.masks.input_channels`), finite.
         window: ``(window_pings, window_bins)``.
         overlap: fraction of a window shared with the next, in [0, 1).
         batch_size: windows per forward pass.
@@ -150,24 +165,29 @@ def predict_waterfall(
         ``(P, 2, B)`` float32 prediction for every bin (masking is the caller's).
     """
     intensity = np.asarray(intensity, dtype=np.float32)
-    if intensity.ndim != 3 or intensity.shape[1] != 2:
-        raise ValueError(f"intensity: expected shape (P, 2, B), found {intensity.shape}")
+    if intensity.ndim == 3:
+        intensity = intensity[:, :, None]
+    if intensity.ndim != 4 or intensity.shape[1] != 2:
+        raise ValueError(
+            f"intensity: expected shape (P, 2, B) or (P, 2, C, B), found {intensity.shape}"
+        )
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size: expected an integer >= 1, found {batch_size!r}")
     h, w = window
-    n_pings, _, n_bins = intensity.shape
+    n_pings, _, n_channels, n_bins = intensity.shape
     padded_shape = (max(n_pings, h), max(n_bins, w))
     origins = line_windows(padded_shape[0], padded_shape[1], h, w, overlap)
-    out = np.empty(intensity.shape, dtype=np.float32)
+    out = np.empty((n_pings, 2, n_bins), dtype=np.float32)
     for side in range(2):
-        waterfall = np.zeros(padded_shape, dtype=np.float32)
-        waterfall[:n_pings, :n_bins] = intensity[:, side]
-        view = np.lib.stride_tricks.sliding_window_view(waterfall, (h, w))
+        waterfall = np.zeros((n_channels, *padded_shape), dtype=np.float32)
+        waterfall[:, :n_pings, :n_bins] = np.moveaxis(intensity[:, side], 1, 0)
+        view = np.lib.stride_tricks.sliding_window_view(waterfall, (h, w), axis=(1, 2))
         preds = np.empty((len(origins), h, w), dtype=np.float32)
         for start in range(0, len(origins), batch_size):
             o = origins[start : start + batch_size]
-            batch = torch.from_numpy(np.ascontiguousarray(view[o[:, 0], o[:, 1]]))
-            pred = net(batch[:, None].to(device))
+            windows = np.moveaxis(view[:, o[:, 0], o[:, 1]], 0, 1)  # (N, C, h, w)
+            batch = torch.from_numpy(np.ascontiguousarray(windows))
+            pred = net(batch.to(device))
             preds[start : start + len(o)] = pred[:, 0].float().cpu().numpy()
         mean, _ = stitch_windows(preds, origins, padded_shape)
         out[:, side] = mean[:n_pings, :n_bins]
@@ -175,17 +195,7 @@ def predict_waterfall(
 
 
 # --------------------------------------------------------------------- masks
-def sonar_only_mask(line: SidescanLine) -> np.ndarray:
-    """``(P, 2, B)`` uint8 mask from the sonar alone (no mesh): ``MASK_WATER_COLUMN`` where
-    the slant range is below the altimeter altitude, ``MASK_NO_HIT`` for pings without
-    altitude and for non-finite intensity. Shadows are not detected."""
-    altitude = np.asarray(line.altitude_m, dtype=np.float64)
-    water = line.range_m[None, :].astype(np.float64) < np.nan_to_num(altitude, nan=np.inf)[:, None]
-    mask = np.where(water, MASK_WATER_COLUMN, MASK_VALID).astype(np.uint8)
-    mask = np.repeat(mask[:, None, :], 2, axis=1)
-    mask[~np.isfinite(altitude)] |= MASK_NO_HIT
-    mask[~np.isfinite(line.intensity)] |= MASK_NO_HIT
-    return mask
+# sonar_only_mask is re-exported from sss2bathy.data.masks (the data layer owns the rule)
 
 
 def _draped_mask(draped: Any, name: str) -> np.ndarray:
@@ -221,10 +231,14 @@ def _save_cached(path: Path, key: str, n_lat: np.ndarray, mask: np.ndarray) -> N
             np.savez_compressed(f, n_lat=n_lat, mask=mask, key=np.array(key))
 
 
+def _checkpoint(ckpt_path: str | Path) -> dict[str, Any]:
+    return torch.load(Path(ckpt_path), map_location="cpu", weights_only=True)
+
+
 def checkpoint_window_config(ckpt_path: str | Path) -> dict[str, Any]:
     """``window_pings``, ``window_bins``, ``overlap`` of the windows a checkpoint was trained
     on, from the datamodule hyper-parameters Lightning stores in it (safe loading)."""
-    ckpt = torch.load(Path(ckpt_path), map_location="cpu", weights_only=True)
+    ckpt = _checkpoint(ckpt_path)
     data = ckpt.get("datamodule_hyper_parameters") or {}
     keys = ("window_pings", "window_bins", "overlap")
     missing = [k for k in keys if k not in data]
@@ -234,6 +248,29 @@ def checkpoint_window_config(ckpt_path: str | Path) -> dict[str, Any]:
             f"hyper-parameters {missing}; pass the training windows' config"
         )
     return {k: data[k] for k in keys}
+
+
+def checkpoint_input_spec(ckpt_path: str | Path) -> dict[str, Any]:
+    """How a checkpoint's inputs were built: ``{"channels": (...), "sonar_mask": {...}}``.
+
+    ``channels``: the module's ``input_channels`` hyper-parameter, else the datamodule's,
+    else intensity only (checkpoints from before input channels). ``sonar_mask``: the
+    training datamodule's ``sonar_mask`` parameters, else the defaults of
+    :class:`~sss2bathy.data.masks.SonarMaskConfig`. Both are validated.
+    """
+    ckpt = _checkpoint(ckpt_path)
+    model = ckpt.get("hyper_parameters") or {}
+    data = ckpt.get("datamodule_hyper_parameters") or {}
+    channels = model.get("input_channels", data.get("input_channels"))
+    channels = check_channels(
+        DEFAULT_CHANNELS if channels is None else list(channels),
+        f"checkpoint {ckpt_path}: input_channels",
+    )
+    try:
+        mask = SonarMaskConfig.coerce(data.get("sonar_mask"))
+    except ValueError as err:
+        raise ValueError(f"checkpoint {ckpt_path}: {err}") from None
+    return {"channels": channels, "sonar_mask": mask.to_dict()}
 
 
 def _window_params(window_cfg: Mapping[str, Any]) -> tuple[int, int | None, float, int]:
@@ -256,13 +293,27 @@ def _window_params(window_cfg: Mapping[str, Any]) -> tuple[int, int | None, floa
 
 
 # --------------------------------------------------------------------- API
+def line_inputs(
+    line: Any, channels: Sequence[str] | None, sonar_mask: SonarMaskConfig | Mapping | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A line's CNN inputs from its sidescan alone: ``(inputs (P, 2, C, B) float32, sonar mask
+    (P, 2, B) uint8)`` (intensity normalised over the sonar-only valid bins, then the
+    channels of :func:`sss2bathy.data.masks.input_channels`)."""
+    intensity, mask = sonar_normalized_intensity(line, sonar_mask)
+    r_max = float(np.max(line.range_m))
+    inputs = input_channels(
+        np.transpose(intensity, (1, 0, 2)), line.range_m, line.altitude_m, r_max, channels
+    )
+    return np.ascontiguousarray(np.transpose(inputs, (2, 0, 1, 3))), mask  # (2,C,P,B)->(P,2,C,B)
+
+
 def predict_normals(
     ckpt_path: str | Path,
     survey: Survey,
     survey_dir: str | Path,
     line_names: Sequence[str],
-    draped: Mapping[str, Any] | None,
-    window_cfg: Mapping[str, Any] | None,
+    draped: Mapping[str, Any] | None = None,
+    window_cfg: Mapping[str, Any] | None = None,
     device: str | torch.device | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Predicted n_lat waterfalls of whole lines, cached under ``survey_dir/predictions/``.
@@ -272,8 +323,8 @@ def predict_normals(
         survey: the survey holding the lines.
         survey_dir: the survey's folder (cache root).
         line_names: lines to predict.
-        draped: ``{line name: DrapedLine}`` (uses ``.mask (P, 2, B) uint8``), or None for the
-            sonar-only mask (:func:`sonar_only_mask`).
+        draped: ``{line name: DrapedLine}`` (uses ``.mask (P, 2, B) uint8``), or None. Only
+            OR-ed into the returned mask (display, scoring); predictions never depend on it.
         window_cfg: ``window_pings``, ``window_bins`` (None: a line's bins), ``overlap``: the
             training windows (the windows DataModule config works as is); optional
             ``batch_size`` (64). None: read from the checkpoint
@@ -281,7 +332,9 @@ def predict_normals(
         device: torch device; default CUDA if available, else CPU.
 
     Returns:
-        ``{line: (n_lat (P, 2, B) float32, NaN at invalid bins, mask (P, 2, B) uint8)}``.
+        ``{line: (n_lat (P, 2, B) float32, NaN at invalid bins, mask (P, 2, B) uint8)}``; the
+        mask is the sonar-only mask of the checkpoint's ``sonar_mask`` parameters (OR the
+        draped mask when given).
     """
     if isinstance(line_names, str) or not all(isinstance(n, str) for n in line_names):
         raise ValueError(f"line_names: expected a list of line names, found {line_names!r}")
@@ -298,13 +351,15 @@ def predict_normals(
     if window_cfg is None:
         window_cfg = checkpoint_window_config(ckpt_path)
     h, w, overlap, batch_size = _window_params(window_cfg)
+    spec = checkpoint_input_spec(ckpt_path)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     key = stable_hash(
         {
             "version": CACHE_VERSION,
             "ckpt": file_sha256(ckpt_path),
             "window": [h, w, overlap],
-            "mask": "draped" if draped is not None else "sonar_only",
+            "channels": list(spec["channels"]),
+            "sonar_mask": spec["sonar_mask"],
         }
     )
     cache_dir = Path(survey_dir) / "predictions" / key
@@ -312,22 +367,31 @@ def predict_normals(
     results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name in line_names:
         line = survey.line(name)
-        mask = _draped_mask(draped[name], name) if draped is not None else sonar_only_mask(line)
-        if mask.shape != line.intensity.shape:
-            raise ValueError(
-                f"draped['{name}'].mask: expected shape {line.intensity.shape}, found {mask.shape}"
-            )
+        sonar = sonar_only_mask(line, spec["sonar_mask"])
         path = cache_dir / f"{name}.npz"
-        n_lat = _load_cached(path, key, mask)
+        n_lat = _load_cached(path, key, sonar)
         if n_lat is None:
             if net is None:
                 net = load_normal_net(ckpt_path).to(device)
-            # the training windows' normalisation: per head, over valid finite bins
-            valid = (mask == MASK_VALID) & np.isfinite(line.intensity)
-            intensity = normalize_intensity(line.intensity, valid)
+            n_in = getattr(net, "in_channels", len(spec["channels"]))
+            if n_in != len(spec["channels"]):
+                raise ValueError(
+                    f"ckpt_path: network has in_channels={n_in}, expected "
+                    f"{len(spec['channels'])} for input_channels {list(spec['channels'])}"
+                )
+            inputs, _ = line_inputs(line, spec["channels"], spec["sonar_mask"])
             window = (h, line.n_bins if w is None else w)
-            n_lat = predict_waterfall(net, intensity, window, overlap, batch_size, device)
-            n_lat[mask != MASK_VALID] = np.nan
-            _save_cached(path, key, n_lat, mask)
-        results[name] = (n_lat, mask.copy())
+            n_lat = predict_waterfall(net, inputs, window, overlap, batch_size, device)
+            n_lat[sonar != MASK_VALID] = np.nan
+            _save_cached(path, key, n_lat, sonar)
+        mask = sonar.copy()
+        if draped is not None:
+            extra = _draped_mask(draped[name], name)
+            if extra.shape != mask.shape:
+                raise ValueError(
+                    f"draped['{name}'].mask: expected shape {mask.shape}, found {extra.shape}"
+                )
+            mask |= extra
+            n_lat = np.where(mask == MASK_VALID, n_lat, np.nan).astype(np.float32)
+        results[name] = (n_lat, mask)
     return results

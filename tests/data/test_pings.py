@@ -14,7 +14,14 @@ import torch
 
 from sss2bathy.data.pings import PingAltimeterDataModule, build_ping_table, latest_checkpoint
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
-from sss2bathy.survey import MASK_WATER_COLUMN, BathyGrid, SensorParams, SidescanLine, Survey
+from sss2bathy.survey import (
+    MASK_OUT_OF_BEAM,
+    MASK_WATER_COLUMN,
+    BathyGrid,
+    SensorParams,
+    SidescanLine,
+    Survey,
+)
 
 PLANE = (-20.0, 0.05, 0.02)  # z = a + b x + c y
 ALTITUDE = 8.0
@@ -131,13 +138,23 @@ def test_sidescan_only_masks_without_normals(tiny_survey):
     t = dm.table
     assert torch.isnan(t.n_lat).all()
     water = t.range_m < ALTITUDE
+    # beam 0..60 deg below horizontal: on the flat seabed 8 m down, bins nearer than
+    # 8 / sin(60 deg) are out of beam
+    out_of_beam = ~water & (t.range_m < ALTITUDE / math.sin(math.radians(60.0)))
     # every ping with an altitude: water column exactly where the slant range < altitude
     ping_ok = torch.ones(t.n_pings, dtype=torch.bool)
     ping_ok[[3, 43]] = False  # the pings without altimeter reading
     m = t.mask[ping_ok]
     assert ((m & MASK_WATER_COLUMN) > 0).equal(water.expand_as(m))
-    assert (m[:, :, ~water] == 0).all()
+    assert ((m & MASK_OUT_OF_BEAM) > 0).equal(out_of_beam.expand_as(m))
+    assert (m[:, :, ~water & ~out_of_beam] == 0).all()  # intensities 0.5..2: no shadow
     assert (t.mask[~ping_ok] != 0).all()
+    # the mask parameters come from data.sonar_mask
+    wide = _dm(tiny_survey, normals="none", sonar_mask={"beam_limits": False})
+    wide.setup("fit")
+    assert not (wide.table.mask & MASK_OUT_OF_BEAM).any()
+    with pytest.raises(ValueError, match="sonar_mask.shadow_threshold"):
+        _dm(tiny_survey, normals="none", sonar_mask={"shadow_threshold": -1})
 
 
 def test_steps_per_epoch_and_validation(tiny_survey):
@@ -174,8 +191,7 @@ def test_latest_checkpoint(tmp_path):
     assert latest_checkpoint(tmp_path) == paths[0]
 
 
-def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
-    """normals=cnn: predictions of a (tiny, untrained) CNN on valid draped bins only."""
+def _tiny_checkpoint(folder: Path, channels: tuple[str, ...] = ("intensity",)) -> Path:
     import pytorch_lightning as pl
 
     from sss2bathy.losses.normal import NormalLoss
@@ -184,30 +200,62 @@ def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
 
     torch.manual_seed(0)
     module = NormalCNNModule(
-        net=NormalResNet(base_width=2, n_blocks=1),
+        net=functools.partial(NormalResNet, base_width=2, n_blocks=1),
         loss=NormalLoss(),
         optimizer=functools.partial(torch.optim.Adam, lr=1e-3),
         image_every_n_epochs=0,
+        input_channels=list(channels),
     )
     trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, max_epochs=0)
     trainer.strategy.connect(module)
-    ckpt = tmp_path / "runs" / "cnn" / "2024-01-01_10-00-00" / "checkpoints" / "last.ckpt"
+    ckpt = folder / "runs" / "cnn" / "2024-01-01_10-00-00" / "checkpoints" / "last.ckpt"
     ckpt.parent.mkdir(parents=True)
     trainer.save_checkpoint(ckpt)
-    window = {"window_pings": 16, "window_bins": None, "overlap": 0.5}
+    return ckpt
+
+
+WINDOW = {"window_pings": 16, "window_bins": None, "overlap": 0.5}
+
+
+def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
+    """normals=cnn: predictions of a (tiny, untrained) CNN on the sonar-only valid bins,
+    masked exactly like normals=none (the Lambertian fit)."""
+    _tiny_checkpoint(tmp_path)
     dm = _dm(
         tiny_survey,
         normals="cnn",
         cnn_checkpoint="latest",
         cnn_runs_dir=str(tmp_path / "runs" / "cnn"),
-        window=window,
+        window=WINDOW,
     )
     dm.setup("fit")
+    lambert = _dm(tiny_survey, normals="none", need_intensity=True)
+    lambert.setup("fit")
     gt = _dm(tiny_survey, normals="gt")
     gt.setup("fit")
     t = dm.table
-    assert torch.equal(t.mask, gt.table.mask)  # the draped mask (+ the prediction's)
+    assert torch.equal(t.mask, lambert.table.mask)  # one sonar-only mask for both variants
+    assert not torch.equal(t.mask, gt.table.mask)  # not the draped (MBES) mask
     valid = t.mask == 0
     assert torch.isfinite(t.n_lat[valid]).all() and torch.isnan(t.n_lat[~valid]).all()
     assert t.n_lat[valid].abs().max() <= 1.0
-    assert not torch.allclose(t.n_lat[valid], gt.table.n_lat[valid])  # not the GT normals
+
+
+@pytest.mark.parametrize("channels", [("intensity",), ("intensity", "grazing", "range")])
+def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels):
+    """SIREN-CNN-N2d's inputs (n_lat, mask, intensity) are the same with and without MBES."""
+    ckpt = _tiny_checkpoint(tmp_path, channels)
+    with_grid = Survey.load(tiny_survey)
+    assert with_grid.grid is not None
+    bare = Survey.load(tiny_survey)
+    bare.grid = None
+    names = ["north", "east"]
+    kw = {"normals": "cnn", "cnn_checkpoint": ckpt, "window": WINDOW, "need_intensity": True}
+    a = build_ping_table(with_grid, tmp_path / "with_grid", names, **kw)
+    b = build_ping_table(bare, tmp_path / "bare", names, **kw)
+    assert torch.equal(a.mask, b.mask)
+    assert torch.equal(a.intensity, b.intensity)
+    torch.testing.assert_close(a.n_lat, b.n_lat, rtol=0, atol=0, equal_nan=True)
+    assert (a.mask == 0).float().mean() > 0.3 and torch.isfinite(a.n_lat[a.mask == 0]).all()
+    # and no draping happened for either (no MBES touched)
+    assert not list((tmp_path / "with_grid").glob("draped/*"))

@@ -190,6 +190,7 @@ def test_datamodule_batches(survey_dir, tmp_path):
     batch = next(iter(dm.train_dataloader()))
     expected = {
         "intensity": ((8, 1, 16, 32), torch.float32),
+        "inputs": ((8, 1, 16, 32), torch.float32),
         "n_lat": ((8, 1, 16, 32), torch.float32),
         "mask": ((8, 1, 16, 32), torch.bool),
         "line": ((8,), torch.long),
@@ -234,6 +235,47 @@ def test_datamodule_batches(survey_dir, tmp_path):
     assert next(iter(loaders[1]))["intensity"].shape[1:] == (1, 16, 32)
 
 
+def test_training_inputs_are_the_prediction_inputs(survey_dir, tmp_path):
+    """Training windows hold exactly the inputs predict_normals builds from the sidescan
+    alone (sonar-only normalisation, same channels); the draped mask only picks the loss."""
+    from sss2bathy.modules.predict import line_inputs
+
+    channels = ["intensity", "grazing", "range"]
+    sonar_mask = {"shadow_threshold": 0.1}
+    dm = SidescanWindowDataModule(
+        survey={"kind": "folder", "path": str(survey_dir)},
+        data_dir=str(tmp_path),
+        window_pings=16,
+        window_bins=32,
+        val_fraction=0.25,
+        batch_size=8,
+        seed=1,
+        sonar_mask=sonar_mask,
+        input_channels=channels,
+    )
+    assert dm.hparams["input_channels"] == channels
+    assert dm.hparams["sonar_mask"]["shadow_threshold"] == 0.1
+    dm.setup("fit")
+    survey = Survey.load(survey_dir)
+    whole = {n: line_inputs(survey.line(n), channels, sonar_mask)[0] for n in dm.train_lines}
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["inputs"].shape == (8, 3, 16, 32)
+    torch.testing.assert_close(batch["inputs"][:, :1], batch["intensity"])
+    for i in range(8):
+        name = dm.train_set.line_names[int(batch["line"][i])]
+        p0, b0, side = (int(batch[k][i]) for k in ("ping_start", "bin_start", "side"))
+        ref = whole[name][p0 : p0 + 16, side, :, b0 : b0 + 32].transpose(1, 0, 2)
+        if batch["flipped"][i]:
+            ref = ref[:, ::-1]
+        np.testing.assert_allclose(batch["inputs"][i].numpy(), ref, atol=0)
+    with pytest.raises(ValueError, match="data.input_channels"):
+        SidescanWindowDataModule(
+            survey={"kind": "folder", "path": str(survey_dir)},
+            data_dir=str(tmp_path),
+            input_channels=["grazing"],
+        )
+
+
 def test_datamodule_errors(survey_dir, tmp_path):
     kw = {"survey": {"kind": "folder", "path": str(survey_dir)}, "data_dir": str(tmp_path)}
     dm = SidescanWindowDataModule(**kw, window_pings=16, window_bins=128)
@@ -252,6 +294,9 @@ def test_datamodule_errors(survey_dir, tmp_path):
 
 def test_hydra_config_instantiates(survey_dir, tmp_path):
     data = OmegaConf.load(ROOT / "conf" / "data" / "windows.yaml")
+    # its defaults list: the shared sonar-only mask group
+    assert {"sonar_mask@sonar_mask": "default"} in OmegaConf.to_container(data.pop("defaults"))
+    data.sonar_mask = OmegaConf.load(ROOT / "conf" / "data" / "sonar_mask" / "default.yaml")
     cfg = OmegaConf.create({"seed": 7, "paths": {"data_dir": str(tmp_path)}, "data": data})
     cfg.data.survey = {"kind": "folder", "path": str(survey_dir)}
     cfg.data.window_pings, cfg.data.window_bins = 16, 32
@@ -261,3 +306,5 @@ def test_hydra_config_instantiates(survey_dir, tmp_path):
     assert dm.overlap == 0.75 and math.isclose(dm.drape_cfg.rays_per_bin, 2.0)
     dm.setup("fit")
     assert len(dm.train_set) > 0
+    assert dm.sonar_mask.shadow_threshold == data.sonar_mask.shadow_threshold
+    assert dm.input_channels == ("intensity",)

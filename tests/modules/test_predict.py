@@ -113,22 +113,30 @@ def test_predict_normals_masks_pads_and_caches(checkpoint, tmp_path, monkeypatch
         draped[ln.name] = {"mask": mask}
     window_cfg = {"window_pings": 8, "window_bins": 12, "overlap": 0.75, "batch_size": 4}
     out = predict_normals(path, survey, tmp_path, ["a", "short"], draped, window_cfg, "cpu")
+    bare = predict_normals(path, survey, tmp_path, ["a", "short"], None, window_cfg, "cpu")
     for name, (n_lat, mask) in out.items():
         line = survey.line(name)
+        sonar = sonar_only_mask(line)
         assert n_lat.shape == mask.shape == line.intensity.shape and n_lat.dtype == np.float32
-        np.testing.assert_array_equal(mask, draped[name]["mask"])
+        # the draped mask only adds masked bins; the predictions themselves ignore it
+        np.testing.assert_array_equal(mask, sonar | draped[name]["mask"])
+        np.testing.assert_array_equal(bare[name][1], sonar)
+        keep = mask == MASK_VALID
+        np.testing.assert_array_equal(n_lat[keep], bare[name][0][keep])
         assert np.isnan(n_lat[mask != MASK_VALID]).all()
-        assert np.isfinite(n_lat[mask == MASK_VALID]).all() and np.abs(n_lat[mask == 0]).max() <= 1
-    # the short line (5 pings < 8) is zero-padded: same as running the padded window
-    valid = draped["short"]["mask"] == MASK_VALID
-    x = normalize_intensity(survey.line("short").intensity, valid)
+        assert np.isfinite(n_lat[keep]).all() and np.abs(n_lat[keep]).max() <= 1
+    # the short line (5 pings < 8) is zero-padded: same as running the padded window, the
+    # input normalised over the sonar-only valid bins
+    sonar = sonar_only_mask(survey.line("short"))
+    x = normalize_intensity(survey.line("short").intensity, sonar == MASK_VALID)
     padded = np.zeros((8, 2, 20), np.float32)
     padded[:5] = x
     expected = predict_waterfall(net, padded, (8, 12), 0.75)[:5]
+    valid = out["short"][1] == MASK_VALID
     np.testing.assert_allclose(out["short"][0][valid], expected[valid], atol=1e-6)
 
     files = list((tmp_path / "predictions").glob("*/*.npz"))
-    assert sorted(f.name for f in files) == ["a.npz", "short.npz"]
+    assert sorted(f.name for f in files) == ["a.npz", "short.npz"]  # one cache, draped or not
     # cached: no network needed the second time, identical result
     monkeypatch.setattr(predict_mod, "load_normal_net", lambda *a, **k: pytest.fail("recomputed"))
     again = predict_normals(path, survey, tmp_path, ["a"], draped, window_cfg, "cpu")
@@ -146,8 +154,9 @@ def test_predict_normals_masks_pads_and_caches(checkpoint, tmp_path, monkeypatch
 def test_sonar_only_mask_and_input_validation(checkpoint, tmp_path):
     path, _ = checkpoint
     line = make_line("a", 6, 12, 0)
+    line.intensity[:] = 0.5 + 0.5 * line.intensity  # no shadow-dark bin
     line.altitude_m[4] = np.nan
-    mask = sonar_only_mask(line)
+    mask = sonar_only_mask(line, {"beam_limits": False})
     water = line.range_m < 3.0
     assert mask.shape == (6, 2, 12)
     assert (mask[:4, :, water] == MASK_WATER_COLUMN).all() and (mask[:4, :, ~water] == 0).all()
@@ -155,7 +164,7 @@ def test_sonar_only_mask_and_input_validation(checkpoint, tmp_path):
     survey = Survey(name="tiny", lines=[line])
     cfg = {"window_pings": 8, "window_bins": None, "overlap": 0.5}  # None: all 12 bins
     out = predict_normals(path, survey, tmp_path, ["a"], None, cfg, "cpu")
-    np.testing.assert_array_equal(out["a"][1], mask)
+    np.testing.assert_array_equal(out["a"][1], sonar_only_mask(line))
     with pytest.raises(ValueError, match="unknown.*'b'"):
         predict_normals(path, survey, tmp_path, ["b"], None, cfg, "cpu")
     with pytest.raises(ValueError, match="window_bins"):
@@ -169,3 +178,56 @@ def test_sonar_only_mask_and_input_validation(checkpoint, tmp_path):
     np.testing.assert_array_equal(from_ckpt["a"][0], out["a"][0])
     with pytest.raises(ValueError, match="draped.*'a'"):
         predict_normals(path, survey, tmp_path, ["a"], {}, cfg, "cpu")
+    # the checkpoint's sonar-mask parameters drive the input normalisation and the cache key
+    ckpt["datamodule_hyper_parameters"]["sonar_mask"] = {"shadow_threshold": 0.9}
+    torch.save(ckpt, tmp_path / "strict.ckpt")
+    strict = predict_normals(tmp_path / "strict.ckpt", survey, tmp_path, ["a"], None, None)
+    assert (strict["a"][1] & MASK_SHADOW).any() and not (out["a"][1] & MASK_SHADOW).any()
+    ckpt["datamodule_hyper_parameters"]["sonar_mask"] = {"shadow_threshold": -1}
+    torch.save(ckpt, tmp_path / "bad.ckpt")
+    with pytest.raises(ValueError, match="sonar_mask.shadow_threshold"):
+        predict_normals(tmp_path / "bad.ckpt", survey, tmp_path, ["a"], None, None)
+
+
+def test_extra_input_channels_from_the_checkpoint(tmp_path):
+    """A 2-channel network (intensity, grazing): predict_normals stacks the same inputs as
+    the windows do, from the checkpoint alone."""
+    from sss2bathy.data.masks import input_channels
+    from sss2bathy.modules.predict import line_inputs
+
+    torch.manual_seed(0)
+    module = NormalCNNModule(
+        net=partial(NormalResNet, base_width=2, n_blocks=1),
+        loss=NormalLoss(),
+        optimizer=partial(torch.optim.Adam, lr=1e-3),
+        image_every_n_epochs=0,
+        input_channels=["intensity", "grazing"],
+    )
+    assert module.net.in_channels == 2
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, max_epochs=0)
+    trainer.strategy.connect(module)
+    path = tmp_path / "cnn2.ckpt"
+    trainer.save_checkpoint(path)
+    line = make_line("a", 16, 12, 0)
+    survey = Survey(name="tiny", lines=[line])
+    cfg = {"window_pings": 16, "window_bins": None, "overlap": 0.5}
+    n_lat, mask = predict_normals(path, survey, tmp_path, ["a"], None, cfg, "cpu")["a"]
+    inputs, sonar = line_inputs(line, ["intensity", "grazing"], None)
+    np.testing.assert_array_equal(mask, sonar)
+    assert inputs.shape == (16, 2, 2, 12)
+    grazing = input_channels(
+        np.zeros((16, 12)), line.range_m, line.altitude_m, 12.0, ["intensity", "grazing"]
+    )[1]
+    np.testing.assert_allclose(inputs[:, 0, 1], grazing)
+    with torch.no_grad():
+        direct = module.net.eval()(torch.from_numpy(np.transpose(inputs, (1, 2, 0, 3))))[:, 0]
+    expected = direct.permute(1, 0, 2).numpy()
+    keep = mask == MASK_VALID
+    np.testing.assert_allclose(n_lat[keep], expected[keep], atol=1e-6)
+    with pytest.raises(ValueError, match="in_channels"):
+        NormalCNNModule(
+            net=NormalResNet(base_width=2, n_blocks=1),
+            loss=NormalLoss(),
+            optimizer=partial(torch.optim.Adam, lr=1e-3),
+            input_channels=["intensity", "range"],
+        )
