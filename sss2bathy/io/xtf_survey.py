@@ -141,7 +141,6 @@ def _validate(cfg: dict[str, Any]) -> None:
         v = cfg.get(key)
         if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
             raise ValueError(f"data.survey.{key}: expected null or a number, found {v!r}")
-    resolve_files(cfg.get("files"))
     unknown = sorted(set(cfg) - set(DEFAULTS))
     if unknown:
         log.warning("data.survey: ignoring keys unknown to the xtf source: %s", unknown)
