@@ -23,10 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from sss2bathy.cli._common import apply_extras, config_dir, setup_environment
+from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.map")
 
@@ -182,7 +181,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
 setup_environment()
 
 
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="map")
+@hydra_entry("map")
 def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
