@@ -72,6 +72,9 @@ from sss2bathy.survey import BathyGrid
 
 log = logging.getLogger(__name__)
 
+# metrics ``select_best`` may choose the final map by (lower is better; no MBES needed)
+SELECT_BEST = ("holdout_alt_mae",)
+
 FINDER_DEFAULTS: dict[str, Any] = {
     "solver": "secant",
     "max_iter": None,
@@ -221,6 +224,7 @@ class SirenModule(pl.LightningModule):
         log_images: bool = True,
         sensor_lr: float | None = None,
         encoding_lr: float | None = None,
+        select_best: str | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -257,6 +261,14 @@ class SirenModule(pl.LightningModule):
                 f"encoding_lr: expected a positive learning rate or None, found {encoding_lr}"
             )
         self.encoding_lr = None if encoding_lr is None else float(encoding_lr)
+        if select_best is not None and select_best not in SELECT_BEST:
+            raise ValueError(
+                f"select_best: expected one of {SELECT_BEST} or None, found {select_best!r}"
+            )
+        # the map written at the end: the SIREN of the evaluation with the lowest
+        # ``select_best`` metric (a signal without MBES: held-out altimeter points), or the last
+        self.select_best = select_best
+        self.best_eval: dict[str, Any] | None = None
         self.register_buffer("framed", torch.tensor(False))
         self.register_buffer("theta_cache", torch.zeros(0, 2, 0), persistent=False)
         self.register_buffer("fit_cells", torch.zeros(0, 3), persistent=False)
@@ -477,15 +489,49 @@ class SirenModule(pl.LightningModule):
         for key in keys:
             if key in metrics and math.isfinite(metrics[key]):
                 self.log(f"val/{key}", metrics[key], batch_size=1)
+        self._track_best(metrics)
+
+    def _track_best(self, metrics: Mapping[str, float]) -> None:
+        """Keep a copy of the SIREN at the evaluation with the lowest ``select_best``."""
+        if self.select_best is None:
+            return
+        value = metrics.get(self.select_best)
+        if value is None or not math.isfinite(value):
+            return
+        if self.best_eval is None or value < self.best_eval["value"]:
+            state = {k: v.detach().clone() for k, v in self.siren.state_dict().items()}
+            self.best_eval = {"value": float(value), "epoch": self.current_epoch, "state": state}
+
+    def _restore_best(self, metrics: Mapping[str, float]) -> int | None:
+        """Load the best evaluation's SIREN when it beats the final one; its epoch, else None."""
+        if self.select_best is None or self.best_eval is None:
+            return None
+        value = metrics.get(self.select_best)
+        if value is not None and math.isfinite(value) and value <= self.best_eval["value"]:
+            return None
+        self.siren.load_state_dict(self.best_eval["state"])
+        return int(self.best_eval["epoch"])
 
     def on_fit_end(self) -> None:
         if not self.trainer.is_global_zero:
             return
         pred, metrics = self.evaluate_map()
+        best_epoch = self._restore_best(metrics)
+        if best_epoch is not None:
+            log.info(
+                "final map: the SIREN of epoch %d (lowest %s %.4g; last epoch %.4g)",
+                best_epoch,
+                self.select_best,
+                self.best_eval["value"],
+                metrics.get(self.select_best, float("nan")),
+            )
+            pred, metrics = self.evaluate_map()
         self.last_eval = {"pred": pred, "metrics": metrics, "epoch": self.current_epoch}
         out_dir = self._output_dir()
         summary = {"final/" + k: v for k, v in metrics.items() if isinstance(v, int | float)}
         summary["epochs"] = int(self.current_epoch)
+        summary["final/map_epoch"] = int(self.current_epoch) if best_epoch is None else best_epoch
+        self.final_metrics["final/map_epoch"] = float(summary["final/map_epoch"])
         if self.direct_fit:
             title = "SIREN-Direct-Fit"
         else:

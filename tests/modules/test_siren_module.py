@@ -235,3 +235,46 @@ def test_holdout_scores_are_logged_beside_the_mbes_ones(tmp_path, tiny_survey):
     assert final["final/holdout_alt_mae"] == pytest.approx(expected, rel=1e-4, abs=1e-5)
     assert final["final/holdout_n"] == split.n_held
     assert model.final_metrics["final/holdout_interp_mae"] == pytest.approx(split.interp_mae)
+
+
+def test_select_best_keeps_the_siren_of_the_lowest_holdout_score():
+    """select_best=holdout_alt_mae: the final map is the evaluation with the lowest held-out
+    altimeter MAE; a better final evaluation is kept as it is."""
+    module = SirenModule(Siren(hidden=8, n_layers=3), sensor=None, select_best="holdout_alt_mae")
+    first = {k: v.clone() for k, v in module.siren.state_dict().items()}
+    module._track_best({"holdout_alt_mae": 0.3})
+    with torch.no_grad():
+        for p in module.siren.parameters():
+            p.add_(1.0)
+    module._track_best({"holdout_alt_mae": 0.5})  # worse: not kept
+    module._track_best({"holdout_alt_mae": float("nan")})  # ignored
+    assert module.best_eval["value"] == 0.3
+    # the final evaluation is better than every earlier one: nothing is restored
+    assert module._restore_best({"holdout_alt_mae": 0.2}) is None
+    assert not torch.equal(module.siren.state_dict()["out_layer.weight"], first["out_layer.weight"])
+    # the final evaluation is worse: the best one's SIREN comes back
+    assert module._restore_best({"holdout_alt_mae": 0.4}) == 0
+    for k, v in module.siren.state_dict().items():
+        assert torch.equal(v, first[k]), k
+    with pytest.raises(ValueError, match="select_best: expected one of"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, select_best="val/mae")
+
+
+def test_select_best_through_hydra_writes_the_chosen_epoch(tmp_path, tiny_survey):
+    cfg = _compose(
+        tmp_path,
+        "siren_gt_n2d",
+        tiny_survey,
+        [
+            "data.holdout.block_pings=10",
+            "model.select_best=holdout_alt_mae",
+            "model.eval_every_n_epochs=1",
+            "trainer.max_epochs=3",
+        ],
+    )
+    trainer, model, dm = _fit_from_config(cfg)
+    final = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert 0 <= final["final/map_epoch"] <= trainer.current_epoch
+    assert model.best_eval is not None
+    # the written map's held-out score is the best one seen
+    assert final["final/holdout_alt_mae"] <= model.best_eval["value"] + 1e-6
