@@ -116,9 +116,10 @@ schedule-study: install ## SIREN-CNN-N2d: paper schedule vs fast schedule, map M
 .PHONY: lambert-tune
 TUNE := outputs/multiruns/lambert_tune/$(SCALE)
 TUNE_TRAIN := $(BIN)/sss2bathy-train -m experiment=lambert_tune scale=$(SCALE) torch_threads=1
-lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one run at a time (12 runs, ~20 min) -> outputs/lambert_tune/
+lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one run at a time (13 runs, ~15 min) -> outputs/lambert_tune/
 	rm -rf $(TUNE)
 	$(TUNE_TRAIN) model.sensor.q=1,2,4 model.sensor.reflectivity=constant,field hydra.sweep.dir=$(TUNE)/q_reflectivity $(ARGS)
+	$(TUNE_TRAIN) model.sensor.q=6 model.sensor.reflectivity=field hydra.sweep.dir=$(TUNE)/q_edge $(ARGS)
 	$(TUNE_TRAIN) model.sensor.shadow_threshold=0,0.5 hydra.sweep.dir=$(TUNE)/shadow_threshold $(ARGS)
 	$(TUNE_TRAIN) model.sensor.near_range_cut_m=16 hydra.sweep.dir=$(TUNE)/near_range_cut $(ARGS)
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_lr=1e-2 hydra.sweep.dir=$(TUNE)/field_lr $(ARGS)
