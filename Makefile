@@ -76,6 +76,10 @@ map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> ma
 	@test -n "$(XTF)" || { echo "make map: expected XTF=<folder, file or glob of .xtf files>, found none"; exit 2; }
 	$(BIN)/python -m sss2bathy.cli.map 'files=$(XTF)' scale=$(SCALE) $(if $(CKPT),'cnn_checkpoint=$(CKPT)') $(ARGS)
 
+.PHONY: xtf-study
+xtf-study: install ## Issue 16 targets on generated AUV XTF surveys (no MBES): held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
+	OMP_NUM_THREADS=1 $(BIN)/python -m sss2bathy.eval.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
+
 d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
 	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
 		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
