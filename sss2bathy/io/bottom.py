@@ -303,3 +303,51 @@ def detect_first_return(
         interpolated = fill
         altitude[fill] = np.interp(rows[fill], idx, altitude[idx])
     return BottomPicks(altitude, found, interpolated, rejected, bad, blanking_used)
+
+
+def calibrate_to_altimeter(
+    first_return_m: np.ndarray, altimeter_m: np.ndarray, n_ref: int = 20
+) -> tuple[np.ndarray, np.ndarray]:
+    """Detector altitudes shifted by the detector's local error against the altimeter.
+
+    The first return is not the altitude everywhere: where the nadir echo is too weak
+    (outside the main beam, a dark seabed) the pick is the main beam's first echo, up to
+    ``1 / sin(tilt + beam / 2)`` times farther, and a ridge beside the track returns before
+    the seabed beneath. Both persist over many pings, so a ping without an altimeter value
+    gets ``first_return + median(altimeter - first_return)`` over the ``n_ref`` pings nearest
+    in ping order that have both.
+
+    Args:
+        first_return_m: ``(P,)`` detector altitudes (NaN: no pick).
+        altimeter_m: ``(P,)`` recorded altitudes (NaN: none).
+        n_ref: reference pings per offset (>= 1).
+
+    Returns:
+        ``(altitude, offset)``: ``(P,)`` calibrated first returns (the raw pick where no ping
+        has both values, or where the shift would not leave an altitude > 0) and the offset
+        applied (0 there).
+    """
+    fr = np.asarray(first_return_m, dtype=np.float64)
+    alt = np.asarray(altimeter_m, dtype=np.float64)
+    if fr.ndim != 1 or alt.shape != fr.shape:
+        raise ValueError(
+            f"first_return_m, altimeter_m: expected equal 1-D shapes, found {fr.shape} and "
+            f"{alt.shape}"
+        )
+    if int(n_ref) < 1:
+        raise ValueError(f"n_ref: expected a count >= 1, found {n_ref}")
+    offset = np.zeros(fr.shape)
+    ref = np.flatnonzero(np.isfinite(fr) & np.isfinite(alt))
+    if ref.size == 0:
+        return fr.copy(), offset
+    diff = alt[ref] - fr[ref]
+    n = min(int(n_ref), ref.size)
+    for i in np.flatnonzero(np.isfinite(fr) & ~np.isfinite(alt)):
+        k = int(np.searchsorted(ref, i))
+        lo, hi = max(0, k - n), min(ref.size, k + n)
+        near = np.argsort(np.abs(ref[lo:hi] - i), kind="stable")[:n]
+        offset[i] = float(np.median(diff[lo:hi][near]))
+    out = fr + offset
+    keep = ~(out > 0) & np.isfinite(fr)
+    out[keep], offset[keep] = fr[keep], 0.0
+    return out, offset

@@ -60,7 +60,7 @@ from pyxtf import (
 from scipy.ndimage import median_filter
 
 from sss2bathy.geometry import attitude_to_rotation, rotation_to_attitude
-from sss2bathy.io.bottom import bad_pings, detect_first_return
+from sss2bathy.io.bottom import bad_pings, calibrate_to_altimeter, detect_first_return
 from sss2bathy.survey import SensorParams, SidescanLine, SurveyFormatError
 from sss2bathy.survey.model import (
     ALTITUDE_DETECTED,
@@ -802,7 +802,9 @@ def read_xtf(
                 f"(median |difference| {float(np.median(np.abs(diff))):.2f} m, "
                 f"blanking {picks.blanking_m:.2f} m)",
             )
-    altitude = np.where(alt_ok, altitude, first_return)
+    # repairs carry the detector's local error against the altimeter (nearest pings with both)
+    repaired_alt, offset = calibrate_to_altimeter(first_return, np.where(alt_ok, altitude, np.nan))
+    altitude = np.where(alt_ok, altitude, repaired_alt)
     source = np.full(len(altitude), ALTITUDE_MISSING, dtype=np.uint8)
     source[alt_ok] = ALTITUDE_RECORDED
     source[~alt_ok & picks.picked] = ALTITUDE_DETECTED
@@ -817,6 +819,9 @@ def read_xtf(
     repairs = {
         "filled from the detector": int((source == ALTITUDE_DETECTED).sum()),
         "interpolated between detected pings": int((source == ALTITUDE_INTERPOLATED).sum()),
+        "of those shifted by the nearest pings' altimeter - first return offset": int(
+            (~alt_ok & (offset != 0)).sum()
+        ),
         "left missing (NaN, no altimeter point)": int((source == ALTITUDE_MISSING).sum()),
         "first returns rejected (edge in the blanking zone)": int(picks.rejected.sum()),
         "pings masked as no-hit (constant)": ping_flags["constant"],

@@ -117,3 +117,27 @@ def test_bad_pings_are_flagged_by_kind():
     assert flags["constant"].tolist() == [False, True, False, False, False]
     assert flags["saturated"].tolist() == [False, False, True, False, False]
     assert flags["nonfinite"].tolist() == [False, False, False, True, False]
+
+
+def test_calibrate_to_altimeter_removes_the_local_detector_error():
+    from sss2bathy.io.bottom import calibrate_to_altimeter
+
+    P = 120
+    truth = 10.0 + 0.01 * np.arange(P)
+    # the detector reads 1.2 m late over pings 20-59 (nadir echo missed), 0.3 m early after
+    fr = truth + np.where((np.arange(P) >= 20) & (np.arange(P) < 60), 1.2, -0.3)
+    alt = truth.copy()
+    gap = np.r_[35:38, 90:93]
+    alt[gap] = np.nan
+    out, offset = calibrate_to_altimeter(fr, alt, n_ref=6)
+    assert np.abs(out[gap] - truth[gap]).max() < 1e-9
+    assert np.allclose(offset[gap[:3]], -1.2) and np.allclose(offset[gap[3:]], 0.3)
+    keep = np.setdiff1d(np.arange(P), gap)
+    assert np.array_equal(out[keep], fr[keep]) and not offset[keep].any()
+    # no ping with both values: the raw picks; a shift to <= 0 m is not applied
+    raw, off0 = calibrate_to_altimeter(fr, np.full(P, np.nan))
+    assert np.array_equal(raw, fr) and not off0.any()
+    low, off1 = calibrate_to_altimeter(np.array([0.5, 3.0]), np.array([np.nan, 1.0]))
+    assert low[0] == 0.5 and off1[0] == 0.0
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        calibrate_to_altimeter(fr, alt[:3])
