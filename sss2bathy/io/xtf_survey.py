@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULTS", "IMPORT_VERSION", "prepare_xtf_survey", "resolve_files", "resolve_splits"]
 
 # Bump when the import changes what it writes, so cached folders are rebuilt.
-IMPORT_VERSION = 2
+IMPORT_VERSION = 3
 
 DEFAULTS: dict[str, Any] = {
     "kind": "xtf",
