@@ -296,7 +296,7 @@ def to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "XTF study") -> 
                     str(r["repair_n"]),
                     _f(r["repair_max_m"]),
                     _f(r["repair_median_m"]),
-                    _f(r["wall_s"], ".0f"),
+                    "failed" if str(r["run"]).startswith("FAILED") else _f(r["wall_s"], ".0f"),
                 ]
             )
             + " |"
@@ -542,6 +542,16 @@ def study_row(
     }
 
 
+def failed_row(method: str, variant: str, seed: int, error: str) -> dict[str, Any]:
+    """The table row of a run that failed: no metrics, ``run`` = ``FAILED: <error>``."""
+    nan = math.nan
+    return {
+        "method": method, "variant": variant, "seed": int(seed), "holdout_mae": nan,
+        "interp_mae": nan, "ratio": nan, "holdout_n": None, "overlap": nan, "repair_n": 0,
+        "repair_max_m": nan, "repair_median_m": nan, "wall_s": nan, "run": f"FAILED: {error}",
+    }  # fmt: skip
+
+
 def run_study(
     out_dir: str | Path,
     seeds: Sequence[int],
@@ -592,7 +602,13 @@ def run_study(
                         map_args,
                     )
                     log.info("seed %s %s %s: %s", seed, method, variant, " ".join(cmd))
-                    run_map(cmd, run_dir)
+                    try:
+                        run_map(cmd, run_dir)
+                    except RuntimeError as exc:  # the table says so; the other runs go on
+                        log.error("%s", exc)
+                        rows.append(failed_row(method, variant, seed, str(exc)))
+                        write_table(rows, out)
+                        continue
                 if scores is None:
                     scores = survey_scores(survey, data_dir)
                 row = study_row(method, variant, seed, run_dir, scores)

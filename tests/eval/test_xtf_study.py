@@ -13,6 +13,7 @@ import pytest
 from sss2bathy.eval.xtf_study import (
     StudySurvey,
     dropout_pings,
+    failed_row,
     ground_half_width,
     map_command,
     repair_errors,
@@ -130,6 +131,14 @@ def test_table_summary_markdown_and_csv():
     assert "| SIREN-Lambert | demo | 2 | 0.450 | 0.400 | 1.12 | 1.50 | 1/2 |" in md
     parsed = list(csv.DictReader(io.StringIO(to_csv(rows))))
     assert len(parsed) == 3 and float(parsed[1]["ratio"]) == pytest.approx(1.5)
+
+
+def test_failed_run_is_a_row_saying_so():
+    rows = [_row("siren_lambert", "fast", 1, 0.3, 0.4), failed_row("siren_cnn_n2d", "fast", 1, "x")]
+    md = to_markdown(rows)
+    assert "| SIREN-CNN-N2d | fast | 1 | - | - | - | - | - | 0 | - | - | failed |" in md
+    assert "| SIREN-CNN-N2d | fast | 1 | - | - | - | - | 0/1 |" in md
+    assert "FAILED: x" in to_csv(rows)
 
 
 def test_study_row_reads_final_metrics(tmp_path):
