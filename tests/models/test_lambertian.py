@@ -603,7 +603,8 @@ def test_model_swap_changes_only_the_sensor():
     [
         ("siren_gt_n2d", "siren_lambert",
          {"data.normals", "data.need_intensity", "callbacks.lambert_curves"}),
-        ("siren_lambert", "siren_lambert_all", {"data.sidescan_split", "data.batch_pings"}),
+        ("siren_lambert", "siren_lambert_all",
+         {"data.sidescan_split", "data.batch_pings", "data.steps_per_epoch"}),
         ("siren_lambert", "lambert_tune",
          {"data.sidescan_split", "data.altimeter_split", "data.steps_per_epoch",
           "model.log_images", "callbacks.lambert_curves", "torch_threads"}),
