@@ -120,6 +120,8 @@ def test_cnn_batch_with_nan_intensities_is_skipped(tmp_path, hills_survey, monke
         out = original(self, item)
         if self.flip_augment and item % 7 == 3:  # some training windows
             out["intensity"] = torch.full_like(out["intensity"], math.nan)
+            if "inputs" in out:  # the network's input channels (intensity first)
+                out["inputs"] = torch.full_like(out["inputs"], math.nan)
         return out
 
     monkeypatch.setattr(SidescanWindowDataset, "__getitem__", poisoned)

@@ -84,7 +84,7 @@ def test_presets_compose_and_plan(survey, scale):
     n_train = [ln for ln in lines if ln.split == "train"]
     expected = {
         ("synthetic_d1", "paper"): (45, 12, 2000, 512),
-        ("synthetic_d1", "demo"): (8, 4, 300, 256),
+        ("synthetic_d1", "demo"): (32, 4, 300, 256),
         ("synthetic_d1", "tiny"): (2, 2, 60, 64),
         ("synthetic_d2", "paper"): (0, 36, 2000, 512),
         ("synthetic_d2", "demo"): (0, 6, 300, 256),
