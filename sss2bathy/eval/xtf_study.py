@@ -482,7 +482,7 @@ def survey_scores(survey: StudySurvey, data_dir: Path) -> dict[str, Any]:
     from sss2bathy.survey.model import Survey
 
     imported = Survey.load(Path(data_dir) / survey.name)
-    truth = np.load(survey.truth_path)
+    truth = np.load(survey.truth_path, allow_pickle=False)
     tracks, widths, alts, srcs, trues = [], [], [], [], []
     for line in imported.lines:
         key = f"{line.name}/altitude"
