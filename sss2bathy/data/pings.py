@@ -126,8 +126,29 @@ def sidescan_only_mask(line: Any, sonar_mask: Mapping[str, Any] | None = None) -
     return sonar_only_mask(line, sonar_mask)
 
 
-def latest_checkpoint(runs_dir: str | Path) -> Path:
-    """Newest ``**/checkpoints/last.ckpt`` under ``runs_dir`` (by modification time)."""
+def _run_scale(ckpt: Path) -> str | None:
+    """``scale.name`` of the Hydra run a ``<run>/checkpoints/last.ckpt`` belongs to (from
+    ``<run>/.hydra/config.yaml``), or None when the run has no readable config."""
+    config = ckpt.parent.parent / ".hydra" / "config.yaml"
+    if not config.is_file():
+        return None
+    import yaml
+
+    try:
+        data = yaml.safe_load(config.read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+    scale = data.get("scale") if isinstance(data, dict) else None
+    name = scale.get("name") if isinstance(scale, dict) else None
+    return str(name) if name is not None else None
+
+
+def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
+    """Newest ``**/checkpoints/last.ckpt`` under ``runs_dir`` (by modification time).
+
+    With ``scale``, only runs whose Hydra config has that ``scale.name`` count, so a
+    tiny-scale test run never stands in for the demo's CNN.
+    """
     runs_dir = Path(runs_dir)
     found = sorted(runs_dir.glob("**/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
     if not found:
@@ -136,6 +157,16 @@ def latest_checkpoint(runs_dir: str | Path) -> Path:
             f"**/checkpoints/last.ckpt under {runs_dir}), found none; train it first "
             "(make cnn) or give a checkpoint path"
         )
+    if scale is not None:
+        matching = [p for p in found if _run_scale(p) == scale]
+        if not matching:
+            raise ValueError(
+                f"cnn_checkpoint: expected a CNN run of scale={scale} ('latest' under "
+                f"{runs_dir}), found {len(found)} run(s) of other scales "
+                f"({sorted({str(_run_scale(p)) for p in found})}); train it at this scale "
+                "(make cnn SCALE=...) or give a checkpoint path"
+            )
+        found = matching
     return found[-1]
 
 
@@ -368,6 +399,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         cnn_checkpoint: path, or ``"latest"`` = newest ``**/checkpoints/last.ckpt`` under
             ``cnn_runs_dir``; used with ``normals="cnn"``.
         cnn_runs_dir: folder of the CNN experiment's runs (for ``"latest"``).
+        cnn_scale: with ``"latest"``, only CNN runs of this ``scale.name`` (None: any).
         window: the CNN's window (``window_pings``, ``window_bins``, ``overlap``); ``None``:
             the training windows stored in the checkpoint.
         need_intensity: hold normalised intensities (Lambertian sensor model).
@@ -397,6 +429,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         normals: str = "gt",
         cnn_checkpoint: str | None = None,
         cnn_runs_dir: str | None = None,
+        cnn_scale: str | None = None,
         window: Mapping[str, Any] | None = None,
         need_intensity: bool = False,
         batch_pings: int = 64,
@@ -431,6 +464,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.normals = normals
         self.cnn_checkpoint = cnn_checkpoint
         self.cnn_runs_dir = cnn_runs_dir
+        self.cnn_scale = cnn_scale
         self.window = window
         self.need_intensity = bool(need_intensity)
         self.batch_pings = int(batch_pings)
@@ -492,7 +526,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.origin = dict(survey.origin or {})
         ckpt = self.cnn_checkpoint
         if self.normals == "cnn" and ckpt == "latest":
-            ckpt = str(latest_checkpoint(self.cnn_runs_dir))
+            ckpt = str(latest_checkpoint(self.cnn_runs_dir, self.cnn_scale))
             log.info("PingAltimeterDataModule: CNN checkpoint %s", ckpt)
         table = build_ping_table(
             survey,

@@ -189,6 +189,15 @@ def test_latest_checkpoint(tmp_path):
     os.utime(paths[0], (now, now))
     os.utime(paths[1], (now - 100, now - 100))
     assert latest_checkpoint(tmp_path) == paths[0]
+    # with a scale, only runs of that scale count (the newest run here is a tiny one)
+    for ckpt, scale in zip(paths, ("tiny", "demo"), strict=True):
+        hydra_dir = ckpt.parent.parent / ".hydra"
+        hydra_dir.mkdir()
+        (hydra_dir / "config.yaml").write_text(f"scale:\n  name: {scale}\n")
+    assert latest_checkpoint(tmp_path, "demo") == paths[1]
+    assert latest_checkpoint(tmp_path, "tiny") == paths[0]
+    with pytest.raises(ValueError, match=r"expected a CNN run of scale=paper .*'demo', 'tiny'"):
+        latest_checkpoint(tmp_path, "paper")
 
 
 def _tiny_checkpoint(folder: Path, channels: tuple[str, ...] = ("intensity",)) -> Path:
