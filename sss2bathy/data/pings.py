@@ -59,7 +59,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from sss2bathy.data.sources import load_survey, survey_folder
 from sss2bathy.data.windows import EpochSampler
-from sss2bathy.eval.holdout import AltimeterSplit, split_altimeter
+from sss2bathy.data.holdout import AltimeterSplit, split_altimeter
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
 
 log = logging.getLogger(__name__)
@@ -567,7 +567,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
 
     def _fit_altimeter(self, survey: Survey) -> np.ndarray:
         """``(M, 3)`` altimeter points of ``altimeter_split`` the fit uses; with a holdout,
-        the others go to :attr:`holdout_split` (:func:`sss2bathy.eval.holdout.split_altimeter`)."""
+        the others go to :attr:`holdout_split` (:func:`sss2bathy.data.holdout.split_altimeter`)."""
         lines = survey.split_lines(self.altimeter_split)
         if self.holdout["fraction"] == 0.0:
             self.holdout_split = None

@@ -17,7 +17,7 @@ import numpy as np
 from sss2bathy.draping.draped import DrapedLine
 from sss2bathy.survey import MASK_VALID, SidescanLine
 from sss2bathy.survey.masks import MASK_NAMES
-from sss2bathy.utils.atomic import atomic_path
+from sss2bathy.utils.atomic import save_figure
 
 
 def _swath(a: np.ndarray) -> np.ndarray:
@@ -99,11 +99,7 @@ def render_draped(
     for ax in axes:
         ax.set_xlabel("slant range (m), port < 0 < starboard")
     axes[0].set_ylabel("ping")
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)
 
 
 def main(argv: list[str] | None = None) -> None:

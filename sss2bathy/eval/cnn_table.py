@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from sss2bathy.eval.paper_numbers import CNN_TABLE, PAPER_LABEL
-from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from sss2bathy.utils.atomic import atomic_write_text, save_figure
 
 COLUMNS = ("mae", "rel", "rmse", "delta1", "delta2", "delta3")
 HEADERS = ("MAE", "REL", "RMSE", "δ<1.05 (%)", "δ<1.05² (%)", "δ<1.05³ (%)")
@@ -283,10 +283,7 @@ def plot_cnn_bias(
         ax_rng.set_title(f"{name}: bias vs range", fontsize=9)
         ax_rng.legend(fontsize=6)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def write_cnn_bias(

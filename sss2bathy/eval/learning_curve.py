@@ -39,7 +39,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from sss2bathy.utils.atomic import atomic_write_text, save_figure
 
 RUN_RECORD = "learning_curve_run.json"
 MD_NAME, CSV_NAME, PNG_NAME = "learning_curve.md", "learning_curve.csv", "learning_curve.png"
@@ -281,10 +281,7 @@ def plot_learning_curve(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
     axes[0].legend(fontsize=7)
     fig.suptitle("normal CNN learning curve", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def write_learning_curve(

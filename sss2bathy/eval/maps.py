@@ -30,7 +30,7 @@ import torch
 
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
-from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from sss2bathy.utils.atomic import atomic_path, atomic_write_text, save_figure
 
 
 def grid_over_bounds(
@@ -240,11 +240,7 @@ def render_map(
         ax.set_ylabel(ylabel, fontsize=8)
         _plain_ticks(ax)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def axis_labels(origin: Mapping[str, Any] | None) -> tuple[str, str]:

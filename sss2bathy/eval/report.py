@@ -35,7 +35,7 @@ from sss2bathy.eval.cnn_table import cnn_table_csv, cnn_table_markdown, constant
 from sss2bathy.eval.paper_numbers import PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
-from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from sss2bathy.utils.atomic import atomic_write_text, save_figure
 
 log = logging.getLogger("sss2bathy.report")
 
@@ -183,12 +183,7 @@ def siren_table(rows: dict[str, dict], paper: dict[str, dict], title: str) -> tu
 
 
 def _save(fig: Any, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_pdfs(maps: list[MapRun], truth: BathyGrid, region: np.ndarray, path: Path) -> Path:

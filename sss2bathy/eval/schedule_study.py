@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from sss2bathy.modules.curve import read_curve
-from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from sss2bathy.utils.atomic import atomic_write_text, save_figure
 
 CURVE_FILE = "metric_curve.csv"
 
@@ -194,11 +194,7 @@ def plot(result: Mapping[str, Any], path: str | Path) -> Path:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def write_study(result: Mapping[str, Any], out_dir: str | Path) -> dict[str, Path]:

@@ -32,7 +32,7 @@ sonar position of the lines used. Logged: ``val/mae``, ``val/std``, ``val/grad_c
 (:mod:`sss2bathy.metrics.bathy`); with held-out altimeter points (``data.holdout``, with or
 without MBES) ``val/holdout_alt_mae``, ``val/holdout_interp_mae`` (the along-track
 interpolation baseline, constant over the run) and ``val/holdout_ratio``
-(:mod:`sss2bathy.eval.holdout`); images by :class:`SirenMapImages` (TensorBoard only).
+(:mod:`sss2bathy.data.holdout`); images by :class:`SirenMapImages` (TensorBoard only).
 At the end of the fit ``map.tif``, ``map.npz``, ``metrics.json`` and PNGs go to
 ``output_dir`` (default: the logger's ``save_dir``, i.e. the Hydra run folder, else the
 trainer's ``default_root_dir``), and the hyper-parameters are logged with the final
@@ -427,7 +427,7 @@ class SirenModule(pl.LightningModule):
 
     # -------------------------------------------------------------- evaluation
     def _setup_holdout(self, split: Any) -> None:
-        """Held-out altimeter points (:class:`~sss2bathy.eval.holdout.AltimeterSplit`, or
+        """Held-out altimeter points (:class:`~sss2bathy.data.holdout.AltimeterSplit`, or
         ``None``) for :meth:`holdout_metrics`; the interpolation baseline is fixed here."""
         if split is None or split.n_held == 0:
             self.holdout_points = torch.zeros(0, 3, device=self.holdout_points.device)
@@ -444,7 +444,7 @@ class SirenModule(pl.LightningModule):
         ``holdout_n``; empty without held-out points."""
         if not self.holdout_points.numel() or self.holdout_interp_mae is None:
             return {}
-        from sss2bathy.eval.holdout import holdout_mae
+        from sss2bathy.data.holdout import holdout_mae
 
         pts = self.holdout_points
         with torch.no_grad():

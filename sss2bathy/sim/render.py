@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from sss2bathy.survey import SidescanLine, Survey
-from sss2bathy.utils.atomic import atomic_path
+from sss2bathy.utils.atomic import save_figure
 
 
 def _pyplot():
@@ -92,11 +92,7 @@ def render_waterfall(
         ax.set_xlabel("slant range (m)   port  <-  |  ->  starboard")
         ax.set_ylabel("ping")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=dpi, bbox_inches="tight")
 
 
 def hillshade(
@@ -162,8 +158,4 @@ def render_terrain(survey: Survey, path: str | Path, *, dpi: int = 110) -> Path:
     ax.set_title(f"{survey.name}: MBES grid and survey lines")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=dpi, bbox_inches="tight")

@@ -136,7 +136,7 @@ class BathyGrid:
         :data:`GEOTIFF_TILE` px are tiled, with internal overviews (averages) at factors
         2, 4, 8, ... while the overview stays at least :data:`GEOTIFF_TILE` px, so GIS tools
         open them fast. ``tags`` are written as GeoTIFF metadata. To place a local-frame grid
-        on the map use :func:`sss2bathy.io.export.write_geotiff` (it shifts by the survey
+        on the map use :func:`sss2bathy.survey.georef.write_geotiff` (it shifts by the survey
         origin and labels the CRS).
         """
         import rasterio

@@ -321,7 +321,7 @@ class Survey:
         for ln in self.lines:
             ln.save(folder / "lines" / f"{ln.name}.npz")
         if self.grid is not None:
-            from sss2bathy.io.export import write_geotiff
+            from sss2bathy.survey.georef import write_geotiff
 
             write_geotiff(self.grid, folder / "grid.tif", origin=self._grid_origin())
         manifest = {
@@ -379,7 +379,7 @@ class Survey:
             )
         if frame == "local":
             return BathyGrid.load_geotiff(path)
-        from sss2bathy.io.export import read_geotiff
+        from sss2bathy.survey.georef import read_geotiff
 
         origin = {"crs": None, "easting": 0.0, "northing": 0.0, **(manifest.get("origin") or {})}
         return read_geotiff(path, origin=origin)

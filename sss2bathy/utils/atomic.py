@@ -67,6 +67,19 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def save_figure(fig: Any, path: str | Path, dpi: int = 110, **savefig: Any) -> Path:
+    """Save a matplotlib figure as PNG atomically (:func:`atomic_path`) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format="png", **savefig)
+    finally:
+        plt.close(fig)
+    return path
+
+
 def stable_hash(obj: Any, length: int = 16) -> str:
     """Hex digest of a JSON-serialisable object (keys sorted), for cache keys."""
     blob = json.dumps(obj, sort_keys=True, default=str).encode()

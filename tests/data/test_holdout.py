@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sss2bathy.data.pings import PingAltimeterDataModule, holdout_config
-from sss2bathy.eval.holdout import (
+from sss2bathy.data.holdout import (
     along_track_distance,
     holdout_blocks,
     holdout_mae,
