@@ -63,6 +63,19 @@ def _check_rows(rows: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, 
     return out
 
 
+def table_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """Group ``test/{name}/{metric}`` (or ``test/{metric}``) values into table rows
+    ``{name: {metric: value}}`` for the six paper metrics; rows missing one are left out."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        parts = str(key).split("/")
+        if parts[0] != "test" or parts[-1] not in COLUMNS or len(parts) not in (2, 3):
+            continue
+        name = parts[1] if len(parts) == 3 else "test"
+        rows.setdefault(name, {})[parts[-1]] = float(value)
+    return {k: v for k, v in rows.items() if set(COLUMNS) <= set(v)}
+
+
 def constant_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     """Group ``test/{name}/constant/{metric}`` values into constant-prediction rows
     ``{name: {metric: value, "value": constant}}``; rows missing a metric are left out."""

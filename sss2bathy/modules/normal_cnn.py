@@ -25,8 +25,9 @@ import torch
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch import nn
 
+from sss2bathy.eval.cnn_table import table_rows_from_metrics
 from sss2bathy.losses.normal import NormalLoss
-from sss2bathy.metrics.normal import METRIC_NAMES, NormalMetrics
+from sss2bathy.metrics.normal import NormalMetrics
 
 log = logging.getLogger(__name__)
 
@@ -436,19 +437,6 @@ class NormalImageLogger(pl.Callback):
 
 
 # --------------------------------------------------------------------- table
-def table_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
-    """Group ``test/{name}/{metric}`` (or ``test/{metric}``) values into table rows
-    ``{name: {metric: value}}`` for the six paper metrics; rows missing one are left out."""
-    rows: dict[str, dict[str, float]] = {}
-    for key, value in metrics.items():
-        parts = str(key).split("/")
-        if parts[0] != "test" or parts[-1] not in METRIC_NAMES or len(parts) not in (2, 3):
-            continue
-        name = parts[1] if len(parts) == 3 else "test"
-        rows.setdefault(name, {})[parts[-1]] = float(value)
-    return {k: v for k, v in rows.items() if set(METRIC_NAMES) <= set(v)}
-
-
 class CNNTableWriter(pl.Callback):
     """After testing, writes the Table-2-style CNN table (Markdown + CSV, the paper's numbers
     beside ours) into ``out_dir`` from the ``test/{name}/...`` metrics, with a

@@ -18,6 +18,7 @@ from sss2bathy.eval.cnn_table import (
     cnn_table_markdown,
     constant_metric_keys,
     constant_rows_from_metrics,
+    table_rows_from_metrics,
     write_cnn_bias,
     write_cnn_table,
 )
@@ -48,6 +49,14 @@ def test_constant_rows_and_skill_in_markdown_and_csv(tmp_path):
     assert table[2]["skill"] == "" and table[-1]["source"].startswith("paper")
     md_path, csv_path = write_cnn_table(rows, tmp_path, const)
     assert md_path.read_text() == md and csv_path.is_file()
+
+
+def test_table_rows_from_metrics_groups_complete_rows_only():
+    metrics = {f"test/d1/{k}": v for k, v in ROW.items()}
+    metrics.update({f"test/{k}": v for k, v in ROW.items()})
+    metrics.update({"test/d2/mae": 0.1, "val/mae": 0.2, "test/d1/constant/mae": 0.3})
+    rows = table_rows_from_metrics(metrics)
+    assert rows == {"d1": pytest.approx(ROW), "test": pytest.approx(ROW)}
 
 
 def test_constant_rows_round_trip_through_metrics_and_errors():

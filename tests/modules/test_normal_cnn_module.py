@@ -14,7 +14,7 @@ from pytorch_lightning.loggers import TensorBoardLogger
 from torch.utils.data import DataLoader, Dataset
 
 from sss2bathy.cli._common import config_dir
-from sss2bathy.eval.cnn_table import write_cnn_table
+from sss2bathy.eval.cnn_table import table_rows_from_metrics, write_cnn_table
 from sss2bathy.eval.paper_numbers import PAPER_LABEL
 from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
@@ -22,7 +22,6 @@ from sss2bathy.modules.normal_cnn import (
     CNNTableWriter,
     NormalCNNModule,
     render_window_panel,
-    table_rows_from_metrics,
 )
 
 H, W = 8, 16
