@@ -8,6 +8,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from sss2bathy.utils.checkpoints import RESUME_PATTERNS, find_checkpoints
+
 log = logging.getLogger("sss2bathy")
 
 
@@ -37,9 +39,8 @@ def latest_resume_checkpoint(run_dir: Path) -> Path | None:
     ``hpc_ckpt_<n>.ckpt`` (what Lightning's SLURM auto-requeue writes into the trainer's
     ``default_root_dir`` on the pre-emption signal, see ``conf/trainer/slurm.yaml``).
     """
-    candidates = [run_dir / "checkpoints" / "last.ckpt", *run_dir.glob("hpc_ckpt_*.ckpt")]
-    found = [p for p in candidates if p.is_file()]
-    return max(found, key=lambda p: p.stat().st_mtime) if found else None
+    found = find_checkpoints(run_dir, RESUME_PATTERNS)
+    return found[-1] if found else None
 
 
 def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path | None) -> str | None:

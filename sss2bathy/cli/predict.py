@@ -11,28 +11,20 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.data.cnn_normals import predict_normals, resolve_cnn_checkpoint
+from sss2bathy.data.sources import load_survey
+from sss2bathy.draping import DrapedLine, drape_survey
+from sss2bathy.draping.render import render_draped
 
 log = logging.getLogger("sss2bathy.predict")
 
 
-def resolve_cnn_checkpoint(ckpt_path: str, output_dir: str | Path) -> Path:
-    """``latest`` -> newest ``last.ckpt`` of the ``cnn`` runs; otherwise the given path."""
-    from sss2bathy.data.pings import latest_checkpoint
-
-    if ckpt_path == "latest":
-        return latest_checkpoint(Path(output_dir) / "runs" / "cnn")
-    path = Path(ckpt_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path: expected a CNN checkpoint file, found {path}")
-    return path
-
-
 def predict(cfg: DictConfig) -> dict:
-    from sss2bathy.data.sources import load_survey
-    from sss2bathy.modules.predict import predict_normals
-
+    """Predict (or read from the cache) the n_lat waterfalls of ``cfg.split``'s lines;
+    ``ckpt_path=latest`` = the newest run under ``<output_dir>/runs/cnn``."""
     survey, folder = load_survey(cfg.data.survey, cfg.paths.data_dir)
-    ckpt = resolve_cnn_checkpoint(cfg.ckpt_path, cfg.paths.output_dir)
+    runs_dir = Path(cfg.paths.output_dir) / "runs" / "cnn"
+    ckpt = resolve_cnn_checkpoint(cfg.ckpt_path, runs_dir, key="ckpt_path")
     names = [ln.name for ln in survey.split_lines(cfg.split)]
     draped = None
     if cfg.use_draped_mask:
@@ -40,15 +32,10 @@ def predict(cfg: DictConfig) -> dict:
             raise ValueError(
                 "use_draped_mask: the survey has no MBES grid; set use_draped_mask=false"
             )
-        from sss2bathy.draping import drape_survey
-
         draped = drape_survey(survey, folder, lines=names)
     preds = predict_normals(ckpt, survey, folder, names, draped, window_cfg=None)
     log.info("predicted %d lines of %s with %s", len(preds), survey.name, ckpt)
     if cfg.render and draped is not None:
-        from sss2bathy.draping import DrapedLine
-        from sss2bathy.draping.render import render_draped
-
         name = names[0]
         n_lat, mask = preds[name]
         shown = DrapedLine(

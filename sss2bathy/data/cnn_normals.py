@@ -1,4 +1,10 @@
-"""Whole-line normal prediction with a trained CNN checkpoint (input of SIREN ``normals=cnn``).
+"""The CNN's normals for whole lines, the input of the SIREN's ``normals=cnn``.
+
+What the SIREN stage needs of a trained :class:`~sss2bathy.modules.normal_cnn.NormalCNNModule`
+lives here, in the data layer, so that ``data/`` never imports ``modules/``: finding the
+checkpoint (:func:`latest_checkpoint`, :func:`resolve_cnn_checkpoint`), rebuilding its plain
+network from the checkpoint alone (:func:`load_normal_net`, classes of ``sss2bathy.models``),
+predicting and stitching (:func:`predict_normals`) and caching the predictions.
 
 Each head of each line is cut into windows of ``window_pings x window_bins`` with the
 training overlap (origins from :func:`sss2bathy.data.windows.line_windows`: a regular
@@ -47,12 +53,57 @@ from sss2bathy.data.masks import (
 from sss2bathy.data.windows import line_windows
 from sss2bathy.survey import MASK_VALID, Survey
 from sss2bathy.utils.atomic import atomic_path, file_sha256, stable_hash
+from sss2bathy.utils.checkpoints import RUNS_PATTERNS, find_checkpoints, run_scale
 
 log = logging.getLogger(__name__)
 
 NET_PACKAGE = "sss2bathy.models."
 COMPILED_PREFIX = "_orig_mod."
 CACHE_VERSION = 2  # 2: sonar-only input normalisation, input channels in the key
+
+
+# --------------------------------------------------------------------- checkpoints
+def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
+    """Newest ``**/checkpoints/last.ckpt`` under ``runs_dir`` (by modification time).
+
+    With ``scale``, only runs whose Hydra config has that ``scale.name`` count, so a
+    tiny-scale test run never stands in for the demo's CNN.
+    """
+    found = find_checkpoints(runs_dir, RUNS_PATTERNS)
+    if not found:
+        raise ValueError(
+            f"cnn_checkpoint: expected a trained CNN ('latest' = newest "
+            f"**/checkpoints/last.ckpt under {runs_dir}), found none; train it first "
+            "(make cnn) or give a checkpoint path"
+        )
+    if scale is not None:
+        matching = [p for p in found if run_scale(p) == scale]
+        if not matching:
+            raise ValueError(
+                f"cnn_checkpoint: expected a CNN run of scale={scale} ('latest' under "
+                f"{runs_dir}), found {len(found)} run(s) of other scales "
+                f"({sorted({str(run_scale(p)) for p in found})}); train it at this scale "
+                "(make cnn SCALE=...) or give a checkpoint path"
+            )
+        found = matching
+    return found[-1]
+
+
+def resolve_cnn_checkpoint(
+    ckpt_path: str | Path, runs_dir: str | Path | None, scale: str | None = None, key: str = ""
+) -> Path:
+    """A CNN checkpoint file: ``"latest"`` = :func:`latest_checkpoint` of ``runs_dir`` (runs
+    of ``scale`` only, when given), otherwise ``ckpt_path``, which must be a file. ``key``
+    names the setting in errors (``cnn_checkpoint``, ``ckpt_path``)."""
+    key = key or "cnn_checkpoint"
+    if str(ckpt_path) == "latest":
+        if runs_dir is None:
+            raise ValueError(f"{key}: 'latest' needs the folder of the CNN runs, found none")
+        return latest_checkpoint(runs_dir, scale)
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{key}: expected a CNN checkpoint file or 'latest', found {path}")
+    return path
 
 
 # --------------------------------------------------------------------- windows
@@ -111,7 +162,8 @@ def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "c
     checkpoint (safe loading, ``weights_only=True``) and return it in eval mode.
 
     The class comes from ``hyper_parameters.net_config._target_``, which must name a class
-    in ``sss2bathy.models`` (a checkpoint can not make us import anything else).
+    in ``sss2bathy.models`` (a checkpoint can not make us import anything else, and the
+    LightningModule is never needed: only its plain network).
     """
     path = Path(ckpt_path)
     if not path.is_file():
@@ -195,9 +247,6 @@ def predict_waterfall(
 
 
 # --------------------------------------------------------------------- masks
-# sonar_only_mask is re-exported from sss2bathy.data.masks (the data layer owns the rule)
-
-
 def _draped_mask(draped: Any, name: str) -> np.ndarray:
     mask = draped.get("mask") if isinstance(draped, Mapping) else getattr(draped, "mask", None)
     if mask is None:

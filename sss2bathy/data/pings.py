@@ -23,7 +23,7 @@ Normals and masks (``normals``):
 
 * ``"gt"`` — lines draped on the MBES grid (:func:`sss2bathy.draping.drape_survey`):
   the draped ``n_lat`` and mask (SIREN-GT-N2d).
-* ``"cnn"`` — CNN predictions (:func:`sss2bathy.modules.predict.predict_normals`); the
+* ``"cnn"`` — CNN predictions (:func:`sss2bathy.data.cnn_normals.predict_normals`); the
   mask is the sonar-only mask OR-ed with the prediction's (SIREN-CNN-N2d). Nothing is
   draped: the result is the same with or without an MBES grid.
 * ``"none"`` — no normal targets (``n_lat`` all NaN) and the very same sonar-only mask
@@ -57,9 +57,13 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from sss2bathy.data.sources import load_survey, survey_folder
-from sss2bathy.data.windows import EpochSampler
+from sss2bathy.data.cnn_normals import latest_checkpoint, predict_normals
 from sss2bathy.data.holdout import AltimeterSplit, split_altimeter
+from sss2bathy.data.masks import SonarMaskConfig, sonar_only_mask
+from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.sources import load_survey, survey_folder
+from sss2bathy.data.windows import EpochSampler, ResumableDataLoader
+from sss2bathy.draping import drape_survey
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
 
 log = logging.getLogger(__name__)
@@ -118,58 +122,6 @@ class PingTable:
         return batch
 
 
-def sidescan_only_mask(line: Any, sonar_mask: Mapping[str, Any] | None = None) -> np.ndarray:
-    """``(P, 2, B)`` uint8 mask from the sonar alone (no MBES), shared by ``normals=none``
-    and ``normals=cnn``: :func:`sss2bathy.data.masks.sonar_only_mask`."""
-    from sss2bathy.data.masks import sonar_only_mask
-
-    return sonar_only_mask(line, sonar_mask)
-
-
-def _run_scale(ckpt: Path) -> str | None:
-    """``scale.name`` of the Hydra run a ``<run>/checkpoints/last.ckpt`` belongs to (from
-    ``<run>/.hydra/config.yaml``), or None when the run has no readable config."""
-    config = ckpt.parent.parent / ".hydra" / "config.yaml"
-    if not config.is_file():
-        return None
-    import yaml
-
-    try:
-        data = yaml.safe_load(config.read_text()) or {}
-    except (OSError, yaml.YAMLError):
-        return None
-    scale = data.get("scale") if isinstance(data, dict) else None
-    name = scale.get("name") if isinstance(scale, dict) else None
-    return str(name) if name is not None else None
-
-
-def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
-    """Newest ``**/checkpoints/last.ckpt`` under ``runs_dir`` (by modification time).
-
-    With ``scale``, only runs whose Hydra config has that ``scale.name`` count, so a
-    tiny-scale test run never stands in for the demo's CNN.
-    """
-    runs_dir = Path(runs_dir)
-    found = sorted(runs_dir.glob("**/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
-    if not found:
-        raise ValueError(
-            f"cnn_checkpoint: expected a trained CNN ('latest' = newest "
-            f"**/checkpoints/last.ckpt under {runs_dir}), found none; train it first "
-            "(make cnn) or give a checkpoint path"
-        )
-    if scale is not None:
-        matching = [p for p in found if _run_scale(p) == scale]
-        if not matching:
-            raise ValueError(
-                f"cnn_checkpoint: expected a CNN run of scale={scale} ('latest' under "
-                f"{runs_dir}), found {len(found)} run(s) of other scales "
-                f"({sorted({str(_run_scale(p)) for p in found})}); train it at this scale "
-                "(make cnn SCALE=...) or give a checkpoint path"
-            )
-        found = matching
-    return found[-1]
-
-
 def build_ping_table(
     survey: Survey,
     survey_dir: str | Path,
@@ -195,8 +147,6 @@ def build_ping_table(
         sonar_mask: :class:`~sss2bathy.data.masks.SonarMaskConfig` fields (``None``:
             defaults), the mask of ``normals="cnn"`` and ``"none"``.
     """
-    from sss2bathy.data.masks import SonarMaskConfig
-
     sonar_mask = SonarMaskConfig.coerce(sonar_mask)
     if normals not in NORMAL_SOURCES:
         raise ValueError(f"normals: expected one of {NORMAL_SOURCES}, found {normals!r}")
@@ -212,13 +162,9 @@ def build_ping_table(
             )
     draped = None
     if normals == "gt":
-        from sss2bathy.draping import drape_survey
-
         draped = drape_survey(survey, survey_dir, cfg=drape, lines=list(line_names))
     predicted = None
     if normals == "cnn":
-        from sss2bathy.modules.predict import predict_normals
-
         if cnn_checkpoint is None:
             raise ValueError("cnn_checkpoint: expected a checkpoint path for normals=cnn")
         predicted = predict_normals(
@@ -234,7 +180,7 @@ def build_ping_table(
         if draped is not None:
             mask = draped[ln.name].mask.copy()
         else:
-            mask = sidescan_only_mask(ln, sonar_mask)
+            mask = sonar_only_mask(ln, sonar_mask)
         if normals == "gt":
             target = draped[ln.name].n_lat
         elif normals == "cnn":
@@ -245,8 +191,6 @@ def build_ping_table(
         n_lat.append(np.where(mask == 0, target, np.nan).astype(np.float32))
         masks.append(mask.astype(np.uint8))
         if need_intensity:
-            from sss2bathy.data.normalize import normalize_intensity
-
             intensity.append(normalize_intensity(ln.intensity, mask == 0))
     return PingTable(
         position=torch.from_numpy(np.concatenate([ln.position for ln in lines]).astype(np.float32)),
@@ -473,8 +417,6 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.seed = int(seed)
         self.device_resident = bool(device_resident)
         self.drape = drape
-        from sss2bathy.data.masks import SonarMaskConfig
-
         self.sonar_mask = SonarMaskConfig.coerce(
             None if sonar_mask is None else {str(k): v for k, v in dict(sonar_mask).items()}
         ).to_dict()
@@ -615,8 +557,6 @@ class PingAltimeterDataModule(pl.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         """Batches of :class:`PingBatches`, resumable mid-epoch (``ResumableDataLoader``)."""
-        from sss2bathy.data.windows import ResumableDataLoader
-
         if self.table is None:
             raise RuntimeError("PingAltimeterDataModule: call setup() before train_dataloader()")
         steps = self.steps_per_epoch or math.ceil(self.table.n_pings / self.batch_pings)

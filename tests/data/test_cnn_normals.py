@@ -1,6 +1,9 @@
-"""Whole-line prediction: window origins, exact stitching, checkpoint loading, masks, cache."""
+"""CNN normals for the SIREN stage: checkpoint discovery, window origins, exact stitching,
+checkpoint loading, masks, cache."""
 
 import logging
+import os
+import time
 from functools import partial
 
 import numpy as np
@@ -8,19 +11,22 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
+from sss2bathy.data import cnn_normals
+from sss2bathy.data.cnn_normals import (
+    latest_checkpoint,
+    line_inputs,
+    load_normal_net,
+    predict_normals,
+    predict_waterfall,
+    resolve_cnn_checkpoint,
+    stitch_windows,
+)
+from sss2bathy.data.masks import input_channels, sonar_only_mask
 from sss2bathy.data.normalize import normalize_intensity
 from sss2bathy.data.windows import line_windows
 from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
-from sss2bathy.modules import predict as predict_mod
 from sss2bathy.modules.normal_cnn import NormalCNNModule
-from sss2bathy.modules.predict import (
-    load_normal_net,
-    predict_normals,
-    predict_waterfall,
-    sonar_only_mask,
-    stitch_windows,
-)
 from sss2bathy.survey import MASK_SHADOW, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
 
 
@@ -138,7 +144,7 @@ def test_predict_normals_masks_pads_and_caches(checkpoint, tmp_path, monkeypatch
     files = list((tmp_path / "predictions").glob("*/*.npz"))
     assert sorted(f.name for f in files) == ["a.npz", "short.npz"]  # one cache, draped or not
     # cached: no network needed the second time, identical result
-    monkeypatch.setattr(predict_mod, "load_normal_net", lambda *a, **k: pytest.fail("recomputed"))
+    monkeypatch.setattr(cnn_normals, "load_normal_net", lambda *a, **k: pytest.fail("recomputed"))
     again = predict_normals(path, survey, tmp_path, ["a"], draped, window_cfg, "cpu")
     np.testing.assert_array_equal(again["a"][0], out["a"][0])
     monkeypatch.undo()
@@ -192,9 +198,6 @@ def test_sonar_only_mask_and_input_validation(checkpoint, tmp_path):
 def test_extra_input_channels_from_the_checkpoint(tmp_path):
     """A 2-channel network (intensity, grazing): predict_normals stacks the same inputs as
     the windows do, from the checkpoint alone."""
-    from sss2bathy.data.masks import input_channels
-    from sss2bathy.modules.predict import line_inputs
-
     torch.manual_seed(0)
     module = NormalCNNModule(
         net=partial(NormalResNet, base_width=2, n_blocks=1),
@@ -231,3 +234,42 @@ def test_extra_input_channels_from_the_checkpoint(tmp_path):
             optimizer=partial(torch.optim.Adam, lr=1e-3),
             input_channels=["intensity", "range"],
         )
+
+
+def test_latest_checkpoint(tmp_path):
+    with pytest.raises(ValueError, match="cnn_checkpoint"):
+        latest_checkpoint(tmp_path)
+    paths = []
+    for run in ("2024-01-01_10-00-00", "2024-01-02_10-00-00"):
+        ckpt = tmp_path / run / "checkpoints" / "last.ckpt"
+        ckpt.parent.mkdir(parents=True)
+        ckpt.write_bytes(b"x")
+        paths.append(ckpt)
+    now = time.time()
+    os.utime(paths[0], (now, now))
+    os.utime(paths[1], (now - 100, now - 100))
+    assert latest_checkpoint(tmp_path) == paths[0]
+    # with a scale, only runs of that scale count (the newest run here is a tiny one)
+    for ckpt, scale in zip(paths, ("tiny", "demo"), strict=True):
+        hydra_dir = ckpt.parent.parent / ".hydra"
+        hydra_dir.mkdir()
+        (hydra_dir / "config.yaml").write_text(f"scale:\n  name: {scale}\n")
+    assert latest_checkpoint(tmp_path, "demo") == paths[1]
+    assert latest_checkpoint(tmp_path, "tiny") == paths[0]
+    with pytest.raises(ValueError, match=r"expected a CNN run of scale=paper .*'demo', 'tiny'"):
+        latest_checkpoint(tmp_path, "paper")
+
+
+def test_resolve_cnn_checkpoint(tmp_path):
+    """``latest`` finds the newest CNN run; a path must be a file; errors name the key."""
+    ckpt = tmp_path / "runs" / "a" / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"x")
+    assert resolve_cnn_checkpoint("latest", tmp_path / "runs") == ckpt
+    assert resolve_cnn_checkpoint(str(ckpt), None) == ckpt
+    with pytest.raises(FileNotFoundError, match="ckpt_path: expected a CNN checkpoint file"):
+        resolve_cnn_checkpoint(tmp_path / "nope.ckpt", tmp_path, key="ckpt_path")
+    with pytest.raises(ValueError, match="cnn_checkpoint: 'latest' needs the folder"):
+        resolve_cnn_checkpoint("latest", None)
+    with pytest.raises(ValueError, match=r"scale=paper .*\['None'\]"):
+        resolve_cnn_checkpoint("latest", tmp_path / "runs", "paper")

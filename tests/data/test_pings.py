@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import functools
 import math
-import os
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from sss2bathy.data.pings import PingAltimeterDataModule, build_ping_table, latest_checkpoint
+from sss2bathy.data.pings import PingAltimeterDataModule, build_ping_table
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
 from sss2bathy.survey import (
     MASK_OUT_OF_BEAM,
@@ -174,30 +172,6 @@ def test_build_ping_table_rejects_mixed_ranges(tiny_survey):
     survey.lines[1].range_m = survey.lines[1].range_m * 1.1
     with pytest.raises(ValueError, match="slant ranges"):
         build_ping_table(survey, tiny_survey, ["north", "east"], normals="none")
-
-
-def test_latest_checkpoint(tmp_path):
-    with pytest.raises(ValueError, match="cnn_checkpoint"):
-        latest_checkpoint(tmp_path)
-    paths = []
-    for run in ("2024-01-01_10-00-00", "2024-01-02_10-00-00"):
-        ckpt = tmp_path / run / "checkpoints" / "last.ckpt"
-        ckpt.parent.mkdir(parents=True)
-        ckpt.write_bytes(b"x")
-        paths.append(ckpt)
-    now = time.time()
-    os.utime(paths[0], (now, now))
-    os.utime(paths[1], (now - 100, now - 100))
-    assert latest_checkpoint(tmp_path) == paths[0]
-    # with a scale, only runs of that scale count (the newest run here is a tiny one)
-    for ckpt, scale in zip(paths, ("tiny", "demo"), strict=True):
-        hydra_dir = ckpt.parent.parent / ".hydra"
-        hydra_dir.mkdir()
-        (hydra_dir / "config.yaml").write_text(f"scale:\n  name: {scale}\n")
-    assert latest_checkpoint(tmp_path, "demo") == paths[1]
-    assert latest_checkpoint(tmp_path, "tiny") == paths[0]
-    with pytest.raises(ValueError, match=r"expected a CNN run of scale=paper .*'demo', 'tiny'"):
-        latest_checkpoint(tmp_path, "paper")
 
 
 def _tiny_checkpoint(folder: Path, channels: tuple[str, ...] = ("intensity",)) -> Path:
