@@ -18,6 +18,7 @@ test lines the paper's tables report.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -178,8 +179,6 @@ def write_table(rows: list[dict[str, Any]], out_dir: str | Path) -> dict[str, Pa
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m sss2bathy.eval.lambert_tune ROOT [--out DIR]``."""
-    import argparse
-
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("root", help="folder of the sweep's runs (searched recursively)")
     p.add_argument("--out", default="outputs/lambert_tune", help="where the table goes")

@@ -1,6 +1,6 @@
 """Schedule study: which SIREN schedule reaches the paper schedule's map error soonest.
 
-Every SIREN run writes ``metric_curve.csv`` (:class:`~sss2bathy.modules.curve.MetricCurve`):
+Every SIREN run writes ``metric_curve.csv`` (:mod:`sss2bathy.eval.metric_curve`):
 the map's ``val/mae`` (and ``val/grad_cs``) at each evaluation against its training
 seconds. This module reads the runs of a study, takes the *reference* run's final MAE as
 the goal (the paper's schedule, ``siren_schedule=paper``), finds when every run first
@@ -16,6 +16,7 @@ evaluated MAE is then the goal, and its wall time so far a lower bound.
 
 from __future__ import annotations
 
+import argparse
 import glob
 import json
 import math
@@ -24,8 +25,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sss2bathy.modules.curve import read_curve
+from sss2bathy.eval.metric_curve import read_curve
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
 
 CURVE_FILE = "metric_curve.csv"
@@ -55,8 +57,6 @@ def load_run_curve(run_dir: str | Path, key: str = "val/mae") -> dict[str, np.nd
         raise FileNotFoundError(
             f"{run_dir}: expected {CURVE_FILE} or tensorboard/events.out.tfevents.*, found neither"
         )
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
     acc = EventAccumulator(events[-1], size_guidance={"scalars": 0})
     acc.Reload()
     tags = acc.Tags().get("scalars", [])
@@ -209,8 +209,6 @@ def write_study(result: Mapping[str, Any], out_dir: str | Path) -> dict[str, Pat
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m sss2bathy.eval.schedule_study --run LABEL=DIR ... --reference LABEL``."""
-    import argparse
-
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
         "--run",

@@ -27,6 +27,7 @@ held-out MAE is optimistic; the table marks them.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -42,7 +43,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
+from scipy.spatial import cKDTree
 
+from sss2bathy.io.xtf import write_xtf
+from sss2bathy.sim.config import SyntheticSurveyConfig
+from sss2bathy.sim.generate import generate_survey
+from sss2bathy.survey.model import (
+    ALTITUDE_DETECTED,
+    ALTITUDE_INTERPOLATED,
+    ALTITUDE_MISSING,
+    Survey,
+)
 from sss2bathy.utils.atomic import atomic_path, atomic_write_text
 
 log = logging.getLogger("sss2bathy.xtf_study")
@@ -109,8 +121,6 @@ def swath_overlap(
         ``{"covered_m2", "overlap", "overlap3"}``: covered area, and the shares of it seen
         by >= 2 and >= 3 lines (NaN with nothing covered).
     """
-    from scipy.spatial import cKDTree
-
     if len(tracks) != len(half_widths):
         raise ValueError(
             f"half_widths: expected one array per track ({len(tracks)}), found {len(half_widths)}"
@@ -179,12 +189,6 @@ def repair_errors(
         (detected or interpolated between detected ones) and their absolute error's max and
         median (NaN without repairs); ``missing`` = pings left without an altitude.
     """
-    from sss2bathy.survey.model import (
-        ALTITUDE_DETECTED,
-        ALTITUDE_INTERPOLATED,
-        ALTITUDE_MISSING,
-    )
-
     alt = np.asarray(altitude_m, np.float64)
     src = np.asarray(source)
     truth = np.asarray(truth_m, np.float64)
@@ -366,8 +370,6 @@ def make_survey(
     ``dropout_pings_per_run`` pings per line whose altitude is removed (alternately 0 m
     and NaN, both written as XTF's "no altitude" 0). ``out_dir/truth.npz`` holds every
     line's true altitude and dropped pings. Reused when ``truth.npz`` exists."""
-    from omegaconf import OmegaConf
-
     out = Path(out_dir)
     name = f"xtf_study_{scale}_s{int(seed)}"
     cfg = OmegaConf.merge(
@@ -378,15 +380,11 @@ def make_survey(
     survey_ = StudySurvey(out, name, crs)
     if survey_.truth_path.is_file():
         return survey_
-    from sss2bathy.io.xtf import write_xtf
-    from sss2bathy.sim import config as sim_config
-    from sss2bathy.sim import generate
-
     cfg.name = name
     cfg.seed = int(seed)
     cfg.plan.mount = "auv"
-    config = sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
-    survey, _ = generate.generate_survey(config)
+    config = SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
+    survey, _ = generate_survey(config)
     lines = survey.split_lines(split)
     if not lines:
         raise ValueError(f"split: expected lines in {split!r}, found none ({survey.splits})")
@@ -479,8 +477,6 @@ def survey_scores(survey: StudySurvey, data_dir: Path) -> dict[str, Any]:
     Raises:
         ValueError: an imported line whose ping count differs from the simulated one.
     """
-    from sss2bathy.survey.model import Survey
-
     imported = Survey.load(Path(data_dir) / survey.name)
     truth = np.load(survey.truth_path, allow_pickle=False)
     tracks, widths, alts, srcs, trues = [], [], [], [], []
@@ -620,8 +616,6 @@ def run_study(
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m sss2bathy.eval.xtf_study [--seeds ...] [--cnn-checkpoint PATH] ...``."""
-    import argparse
-
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", default="outputs/xtf_study", help="study folder (runs, table)")
     p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
