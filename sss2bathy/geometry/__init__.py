@@ -1,4 +1,4 @@
-"""Frames, attitude, isotemporal arcs and normals (paper eq. 1-3, 10).
+"""Frames, attitude, isotemporal arcs and normals (paper eq. 1-3, 10): the one home of each.
 
 Pure, batched functions. Every function accepts torch tensors; numpy arrays are
 accepted too and numpy arrays are returned for them.
@@ -6,19 +6,22 @@ accepted too and numpy arrays are returned for them.
 
 from sss2bathy.geometry.frames import (
     SIDE_PORT,
-    SIDE_SIGNS,
     SIDE_STARBOARD,
+    arc_basis,
     arc_point,
     arc_tangent,
     attitude_to_rotation,
     check_rotations,
     rotation_to_attitude,
+    side_sign,
 )
 from sss2bathy.geometry.normals import (
     grazing_angle,
     head_plane_normal,
     head_plane_normal_from_gradient,
+    head_plane_unit,
     incidence_angle,
+    incidence_cosine,
     vehicle_normal,
     world_normal,
 )
@@ -26,16 +29,19 @@ from sss2bathy.geometry.normals import (
 __all__ = [
     "SIDE_PORT",
     "SIDE_STARBOARD",
-    "SIDE_SIGNS",
+    "arc_basis",
     "arc_point",
     "arc_tangent",
     "attitude_to_rotation",
     "check_rotations",
     "rotation_to_attitude",
+    "side_sign",
     "grazing_angle",
     "head_plane_normal",
     "head_plane_normal_from_gradient",
+    "head_plane_unit",
     "incidence_angle",
+    "incidence_cosine",
     "vehicle_normal",
     "world_normal",
 ]

@@ -1,15 +1,16 @@
 """World (ENU) and vehicle (FLU) frames, attitude conversion and isotemporal arcs.
 
-Conventions (see ARCHITECTURE.md):
+Conventions (see docs/architecture.md):
 
 * World frame: local ENU, metres (x East, y North, z Up).
 * Vehicle/sonar frame: FLU (x forward, y left = port, z up); ``p_world = s + R p_vehicle``.
 * Navigation attitude: heading clockwise from North, pitch bow-up positive,
   roll starboard-down positive.  :func:`attitude_to_rotation` is the only place that
   converts attitudes.
-* Side sign sigma = +1 port (index 0), -1 starboard (index 1).
+* Side sign sigma = +1 port (index 0), -1 starboard (index 1): :func:`side_sign`.
 * Isotemporal arc (paper eq. 10): ``p(theta) = s + r R [0, sigma cos theta, -sin theta]``,
-  theta = depression angle below the vehicle's horizontal.
+  theta = depression angle below the vehicle's horizontal; in world axes
+  ``p(theta) = s + r (cos theta u - sin theta w)`` with :func:`arc_basis` ``(u, w)``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from sss2bathy.geometry._compat import as_tensor_like, numpy_compatible
 
 SIDE_PORT = 0
 SIDE_STARBOARD = 1
-SIDE_SIGNS = (1.0, -1.0)
 
 
 @numpy_compatible
@@ -92,12 +92,46 @@ def check_rotations(R: torch.Tensor, atol: float = 1e-4) -> torch.Tensor:
     return ortho & proper & torch.isfinite(R).all(dim=(-1, -2))
 
 
-def _side_sign(side: torch.Tensor | int | float, ref: torch.Tensor) -> torch.Tensor:
-    """sigma from a side index (0 port, 1 starboard) broadcastable against ``ref``."""
-    side = torch.as_tensor(side, device=ref.device)
+@numpy_compatible
+def side_sign(side: torch.Tensor | int, like: torch.Tensor) -> torch.Tensor:
+    """Side sign ``sigma = 1 - 2 side``: +1 port (index 0), -1 starboard (index 1).
+
+    The one definition of sigma. Exact in every floating dtype.
+
+    Args:
+        side: ``(...)`` integer side indices (0 port, 1 starboard).
+        like: a floating tensor whose dtype and device the result takes.
+
+    Returns:
+        ``(...)`` sigma in ``like``'s dtype, broadcastable against ``like``.
+
+    >>> import numpy as np
+    >>> side_sign(np.array([0, 1]), np.zeros(2)).tolist()
+    [1.0, -1.0]
+    """
+    side = torch.as_tensor(side, device=like.device)
     if side.is_floating_point():
-        raise ValueError("side: expected integer side indices (0 port, 1 starboard)")
-    return as_tensor_like(1.0, ref) - 2.0 * side.to(ref.dtype)
+        raise ValueError("side: expected integer side indices (0 port, 1 starboard), found floats")
+    return as_tensor_like(1.0, like) - 2.0 * side.to(like.dtype)
+
+
+@numpy_compatible
+def arc_basis(R: torch.Tensor, side: torch.Tensor | int) -> tuple[torch.Tensor, torch.Tensor]:
+    """World axes ``(u, w)`` of each head's plane: ``u = sigma R e_y``, ``w = R e_z``.
+
+    The isotemporal arc (eq. 10) is ``p(theta) = s + r (cos(theta) u - sin(theta) w)``, and
+    eq. 3's numerators are ``sigma N_v,y = N . u`` and ``N_v,z = N . w``.
+
+    Args:
+        R: ``(..., 3, 3)`` vehicle -> world rotations.
+        side: ``(...)`` integer side indices, broadcastable against ``R``'s batch shape.
+
+    Returns:
+        ``u``, ``w``: ``(..., 3)`` each (``w`` may be a broadcast view).
+    """
+    R = torch.as_tensor(R)
+    u = side_sign(side, R)[..., None] * R[..., :, 1]
+    return u, R[..., :, 2].expand_as(u)
 
 
 @numpy_compatible
@@ -110,7 +144,8 @@ def arc_point(
 ) -> torch.Tensor:
     """Point of an isotemporal arc (paper eq. 10 in our frame).
 
-    ``p = s + r R [0, sigma cos(theta), -sin(theta)]``.
+    ``p = s + r R [0, sigma cos(theta), -sin(theta)] = s + r (cos(theta) u - sin(theta) w)``
+    with :func:`arc_basis` ``(u, w)``.
 
     Args:
         sonar: ``(..., 3)`` sonar position in world ENU (m).
@@ -122,11 +157,8 @@ def arc_point(
     Returns:
         ``(..., 3)`` world points.
     """
-    sigma = _side_sign(side, theta)
-    direction = torch.stack(
-        [torch.zeros_like(theta), sigma * torch.cos(theta), -torch.sin(theta)], dim=-1
-    )
-    d_world = (R @ direction.unsqueeze(-1)).squeeze(-1)
+    u, w = arc_basis(R, side)
+    d_world = u * torch.cos(theta).unsqueeze(-1) - w * torch.sin(theta).unsqueeze(-1)
     return sonar + range_m.unsqueeze(-1) * d_world
 
 
@@ -134,7 +166,7 @@ def arc_point(
 def arc_tangent(
     R: torch.Tensor, range_m: torch.Tensor, theta: torch.Tensor, side: torch.Tensor | int
 ) -> torch.Tensor:
-    """``dp/dtheta`` of :func:`arc_point`: ``r R [0, -sigma sin(theta), -cos(theta)]``."""
-    sigma = _side_sign(side, theta)
-    d = torch.stack([torch.zeros_like(theta), -sigma * torch.sin(theta), -torch.cos(theta)], dim=-1)
-    return range_m.unsqueeze(-1) * (R @ d.unsqueeze(-1)).squeeze(-1)
+    """``dp/dtheta`` of :func:`arc_point`: ``-r (sin(theta) u + cos(theta) w)``."""
+    u, w = arc_basis(R, side)
+    d = -u * torch.sin(theta).unsqueeze(-1) - w * torch.cos(theta).unsqueeze(-1)
+    return range_m.unsqueeze(-1) * d

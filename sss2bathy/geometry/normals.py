@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from sss2bathy.geometry._compat import numpy_compatible
-from sss2bathy.geometry.frames import _side_sign
+from sss2bathy.geometry.frames import side_sign
 
 
 @numpy_compatible
@@ -28,6 +28,20 @@ def vehicle_normal(normal_world: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
 
 
 @numpy_compatible
+def head_plane_unit(
+    lat: torch.Tensor, up: torch.Tensor, eps: float = 1e-12
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 3's normalisation: ``(n_lat, n_up) = (lat, up) / max(|(lat, up)|, eps)``.
+
+    ``lat = sigma N_v,y`` and ``up = N_v,z`` are the normal's components along the head
+    plane's axes (:func:`~sss2bathy.geometry.arc_basis`: ``N . u`` and ``N . w``), in any
+    length. NaN stays NaN. Shapes ``(...)`` each.
+    """
+    norm = torch.sqrt(lat * lat + up * up).clamp_min(eps)
+    return lat / norm, up / norm
+
+
+@numpy_compatible
 def head_plane_normal(
     normal_vehicle: torch.Tensor, side: torch.Tensor | int, eps: float = 1e-12
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -43,10 +57,8 @@ def head_plane_normal(
     Returns:
         ``n_lat``, ``n_up``, each ``(...)``.
     """
-    ny = _side_sign(side, normal_vehicle[..., 1]) * normal_vehicle[..., 1]
-    nz = normal_vehicle[..., 2]
-    norm = torch.sqrt(ny * ny + nz * nz).clamp_min(eps)
-    return ny / norm, nz / norm
+    lat = side_sign(side, normal_vehicle[..., 1]) * normal_vehicle[..., 1]
+    return head_plane_unit(lat, normal_vehicle[..., 2], eps)
 
 
 @numpy_compatible
@@ -58,6 +70,23 @@ def head_plane_normal_from_gradient(
 
 
 @numpy_compatible
+def incidence_cosine(
+    normal_world: torch.Tensor, point: torch.Tensor, sonar: torch.Tensor
+) -> torch.Tensor:
+    """Cosine of the incidence angle: ``N . (s - p) / max(|N| |s - p|, 1e-12)``, unclamped.
+
+    1 when the sonar looks straight down the normal; < 0 for a back-facing hit (in
+    shadow). ``normal_world`` any length. Shapes ``(..., 3)``; returns ``(...)``. Taken
+    from the dot product directly, so its gradient is finite head-on (where that of
+    :func:`incidence_angle` is not).
+    """
+    to_sonar = sonar - point
+    return (normal_world * to_sonar).sum(-1) / (
+        torch.linalg.vector_norm(normal_world, dim=-1) * torch.linalg.vector_norm(to_sonar, dim=-1)
+    ).clamp_min(1e-12)
+
+
+@numpy_compatible
 def incidence_angle(
     normal_world: torch.Tensor, point: torch.Tensor, sonar: torch.Tensor
 ) -> torch.Tensor:
@@ -66,11 +95,7 @@ def incidence_angle(
     0 when the sonar looks straight down the normal; > pi/2 when the surface faces away
     (a back-facing hit, i.e. in shadow). Shapes ``(..., 3)``; returns ``(...)``.
     """
-    to_sonar = sonar - point
-    cos = (normal_world * to_sonar).sum(-1) / (
-        torch.linalg.vector_norm(normal_world, dim=-1) * torch.linalg.vector_norm(to_sonar, dim=-1)
-    ).clamp_min(1e-12)
-    return torch.acos(cos.clamp(-1.0, 1.0))
+    return torch.acos(incidence_cosine(normal_world, point, sonar).clamp(-1.0, 1.0))
 
 
 @numpy_compatible

@@ -61,16 +61,113 @@ evaluations of the scan and of the warm brackets are not included.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable
-from typing import Protocol
+import numbers
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import torch
+
+from sss2bathy.geometry import arc_basis
 
 SOLVERS = ("newton", "secant", "gd", "bisection")
 DEFAULT_MAX_ITER = {"newton": 16, "secant": 32, "bisection": 48, "gd": 400}
 # Warm brackets tried before a cold scan: theta0 -+ warm_bracket_rad * factor.
 WARM_EXPANSION = (1.0, 4.0, 16.0)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+@dataclass(frozen=True)
+class FinderSettings:
+    """Settings of :func:`find_intersections`: the one source of the finder's defaults.
+
+    ``model.finder`` of the SIREN configs holds the same keys (:meth:`from_mapping`).
+
+    Attributes:
+        solver: ``"secant"`` (height-only, the fastest cold solver) | ``"newton"`` |
+            ``"bisection"`` | ``"gd"`` (the paper's fixed-step descent, eq. 12).
+        max_iter: solver iterations; ``None`` = per solver, :data:`DEFAULT_MAX_ITER`.
+        tol_m: convergence tolerance on ``|f|``, the vertical distance (m).
+        gd_step: ``lambda`` of eq. 12 (``"gd"`` only).
+        warm_start: whether a caller that keeps each bin's last crossing passes it as
+            ``theta0`` (with ``False`` :func:`find_intersections` ignores ``theta0``).
+        n_scan: the cold scan's resolution: its longest unbounded step is
+            ``(theta_hi - theta_lo) / (n_scan - 1)`` (bracketing solvers).
+        scan_max_slope: surface slope ``L`` (m/m) the cold scan assumes where it steps
+            further than one grid spacing; ``inf`` = a plain grid of ``n_scan`` angles.
+        warm_bracket_deg: half-width of the warm-start bracket (degrees).
+        chunk: points per surface evaluation.
+    """
+
+    solver: str = "secant"
+    max_iter: int | None = None
+    tol_m: float = 1e-3
+    gd_step: float = 0.01
+    warm_start: bool = True
+    n_scan: int = 16
+    scan_max_slope: float = 1.0
+    warm_bracket_deg: float = 0.5
+    chunk: int = 8192
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> ValueError:
+            return ValueError(f"finder.{name}: expected {expected}, found {getattr(self, name)!r}")
+
+        def positive(value: Any) -> bool:
+            return _is_number(value) and math.isfinite(value) and value > 0
+
+        if self.solver not in SOLVERS:
+            raise bad("solver", f"one of {SOLVERS}")
+        if self.max_iter is not None and not (_is_int(self.max_iter) and self.max_iter >= 1):
+            raise bad("max_iter", "an integer >= 1 or None")
+        if not positive(self.tol_m):
+            raise bad("tol_m", "a positive tolerance in metres")
+        if not positive(self.gd_step):
+            raise bad("gd_step", "a positive step")
+        if not isinstance(self.warm_start, bool):
+            raise bad("warm_start", "true or false")
+        if not (_is_int(self.n_scan) and self.n_scan >= 2):
+            raise bad("n_scan", "an integer >= 2 (scan angles)")
+        if not (_is_number(self.scan_max_slope) and self.scan_max_slope >= 0):
+            raise bad("scan_max_slope", "a slope >= 0 (inf allowed)")
+        if not positive(self.warm_bracket_deg):
+            raise bad("warm_bracket_deg", "a positive angle (degrees)")
+        if not (_is_int(self.chunk) and self.chunk >= 1):
+            raise bad("chunk", "an integer >= 1 (points)")
+
+    @classmethod
+    def from_mapping(cls, finder: Mapping[str, Any] | FinderSettings | None) -> FinderSettings:
+        """Settings from a config mapping (keys: the fields), defaults for the rest."""
+        if isinstance(finder, FinderSettings):
+            return finder
+        return cls().replace(**dict(finder or {}))
+
+    def replace(self, **changes: Any) -> FinderSettings:
+        """A copy with ``changes`` (field names; an unknown key is an error)."""
+        names = sorted(f.name for f in dataclasses.fields(self))
+        unknown = sorted(set(changes) - set(names))
+        if unknown:
+            raise ValueError(f"finder: expected keys among {names}, found unknown {unknown}")
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def iterations(self) -> int:
+        """``max_iter``, or the solver's default (:data:`DEFAULT_MAX_ITER`)."""
+        return self.max_iter if self.max_iter is not None else DEFAULT_MAX_ITER[self.solver]
+
+    @property
+    def warm_bracket_rad(self) -> float:
+        """:attr:`warm_bracket_deg` in radians."""
+        return math.radians(self.warm_bracket_deg)
 
 
 class HeightField(Protocol):
@@ -93,14 +190,15 @@ def _chunked(fn: Callable, chunk: int, *tensors: torch.Tensor):
 
 
 class _Arcs:
-    """Arc geometry of ``N`` bins: ``p(theta) = s + u cos(theta) - w sin(theta)``."""
+    """Arc geometry of ``N`` bins: ``p(theta) = s + u cos(theta) - w sin(theta)``, with
+    ``(u, w)`` the range-scaled :func:`~sss2bathy.geometry.arc_basis` (eq. 10)."""
 
     def __init__(self, sonar, R, range_m, side) -> None:
-        sigma = 1.0 - 2.0 * side.to(sonar.dtype)
         r = range_m.to(sonar.dtype)
+        u, w = arc_basis(R, side)
         self.sonar = sonar
-        self.u = (sigma * r).unsqueeze(-1) * R[..., :, 1]  # r sigma (R e_y)
-        self.w = r.unsqueeze(-1) * R[..., :, 2]  # r (R e_z)
+        self.u = r.unsqueeze(-1) * u  # r sigma (R e_y)
+        self.w = r.unsqueeze(-1) * w  # r (R e_z)
         self.r = r
 
     def point(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -133,7 +231,7 @@ class _Residual:
         return z.to(p.dtype) - p[:, 2], dz - t[:, 2]
 
 
-def _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, max_iter):
+def _check_inputs(sonar, R, range_m, side, theta_limits, theta0):
     if not isinstance(sonar, torch.Tensor) or sonar.ndim != 2 or sonar.shape[1] != 3:
         raise ValueError(f"sonar: expected a (N, 3) tensor, found {getattr(sonar, 'shape', sonar)}")
     n = sonar.shape[0]
@@ -148,17 +246,11 @@ def _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, 
         raise ValueError(
             f"theta0: expected None or shape ({n},), found {getattr(theta0, 'shape', theta0)}"
         )
-    if solver not in SOLVERS:
-        raise ValueError(f"solver: expected one of {SOLVERS}, found {solver!r}")
     lo, hi = (float(v) for v in theta_limits)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise ValueError(
             f"theta_limits: expected finite (lo, hi) with lo < hi, found {theta_limits}"
         )
-    if not (tol_m > 0):
-        raise ValueError(f"tol_m: expected a positive tolerance in metres, found {tol_m}")
-    if max_iter is not None and int(max_iter) < 1:
-        raise ValueError(f"max_iter: expected >= 1 or None, found {max_iter}")
     return lo, hi
 
 
@@ -170,15 +262,12 @@ def find_intersections(
     range_m: torch.Tensor,
     side: torch.Tensor,
     theta_limits: tuple[float, float],
-    solver: str = "newton",
+    solver: str | None = None,
     theta0: torch.Tensor | None = None,
-    max_iter: int | None = None,
-    tol_m: float = 1e-3,
-    gd_step: float = 0.01,
-    n_scan: int = 16,
-    scan_max_slope: float = 1.0,
-    warm_bracket_rad: float = math.radians(0.5),
-    chunk: int = 8192,
+    *,
+    settings: FinderSettings | Mapping[str, Any] | None = None,
+    warm_bracket_rad: float | None = None,
+    **overrides: Any,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Depression angle where each bin's isotemporal arc crosses ``surface``.
 
@@ -189,46 +278,45 @@ def find_intersections(
         range_m: ``(N,)`` slant ranges (m).
         side: ``(N,)`` long, 0 port / 1 starboard.
         theta_limits: ``(theta_lo, theta_hi)`` beam limits (rad).
-        solver: ``"newton"`` | ``"secant"`` | ``"gd"`` | ``"bisection"`` (module docstring).
-        theta0: ``(N,)`` warm-start angles (rad), NaN where unknown; ``None`` = cold.
-        max_iter: solver iterations (default per solver: :data:`DEFAULT_MAX_ITER`).
-        tol_m: convergence tolerance on ``|f|``, the vertical distance (m).
-        gd_step: ``lambda`` of eq. 12 (``"gd"`` only), m^-1 * rad * m.
-        n_scan: the cold scan's resolution: its longest unbounded step is
-            ``(theta_hi - theta_lo) / (n_scan - 1)`` (bracketing solvers; module docstring).
-        scan_max_slope: surface slope ``L`` (m/m) the cold scan assumes where it steps
-            further than one grid spacing; ``inf`` = a plain grid of ``n_scan`` angles.
-        warm_bracket_rad: half-width of the warm-start bracket (rad).
-        chunk: points per surface evaluation.
+        solver: overrides ``settings.solver`` (module docstring).
+        theta0: ``(N,)`` warm-start angles (rad), NaN where unknown; ``None`` = cold
+            (ignored when ``settings.warm_start`` is false).
+        settings: :class:`FinderSettings` (or a mapping of its fields); ``None``: defaults.
+        warm_bracket_rad: overrides the warm-start bracket's half-width in radians
+            (instead of ``settings.warm_bracket_deg``).
+        **overrides: fields of :class:`FinderSettings` that replace those of ``settings``
+            (``max_iter``, ``tol_m``, ``gd_step``, ``n_scan``, ``scan_max_slope``, ...).
 
     Returns:
         ``theta (N,)`` (rad, NaN where invalid), ``valid (N,)`` bool and
         ``n_iter (N,)`` long (solver evaluations per bin, see the module docstring).
     """
-    lo, hi = _check_inputs(sonar, R, range_m, side, theta_limits, solver, theta0, tol_m, max_iter)
-    if n_scan < 2:
-        raise ValueError(f"n_scan: expected >= 2 scan angles, found {n_scan}")
-    if not float(scan_max_slope) >= 0:
-        raise ValueError(
-            f"scan_max_slope: expected a slope >= 0 (inf allowed), found {scan_max_slope}"
-        )
-    max_iter = int(max_iter) if max_iter is not None else DEFAULT_MAX_ITER[solver]
+    if solver is not None:
+        overrides["solver"] = solver
+    cfg = FinderSettings.from_mapping(settings).replace(**overrides)
+    lo, hi = _check_inputs(sonar, R, range_m, side, theta_limits, theta0)
+    if warm_bracket_rad is None:
+        warm_bracket_rad = cfg.warm_bracket_rad
+    elif not (_is_number(warm_bracket_rad) and 0 < warm_bracket_rad < math.inf):
+        raise ValueError(f"warm_bracket_rad: expected a positive angle, found {warm_bracket_rad}")
+    if not cfg.warm_start:
+        theta0 = None
     arcs = _Arcs(sonar, R, range_m, side)
-    res = _Residual(surface, arcs, int(chunk))
-    if solver == "gd":
-        return _gradient_descent(res, arcs, lo, hi, theta0, max_iter, tol_m, gd_step)
+    res = _Residual(surface, arcs, cfg.chunk)
+    if cfg.solver == "gd":
+        return _gradient_descent(res, arcs, lo, hi, theta0, cfg.iterations, cfg.tol_m, cfg.gd_step)
     return _bracketed_solve(
         res,
         sonar.shape[0],
         lo,
         hi,
         theta0,
-        solver,
-        n_scan,
-        float(scan_max_slope),
+        cfg.solver,
+        cfg.n_scan,
+        float(cfg.scan_max_slope),
         warm_bracket_rad,
-        tol_m,
-        max_iter,
+        cfg.tol_m,
+        cfg.iterations,
     )
 
 

@@ -200,7 +200,7 @@ def test_first_crossing_is_taken_and_out_of_beam_is_invalid():
     sonar = torch.zeros(1, 3, dtype=torch.float64)
     side = torch.ones(1, dtype=torch.long)  # starboard looks east when heading north
     theta, valid, _ = find_intersections(
-        Wall(), sonar, R, torch.tensor([25.0]).double(), side, (0.0, 1.5)
+        Wall(), sonar, R, torch.tensor([25.0]).double(), side, (0.0, 1.5), "newton"
     )
     p = arc_point(sonar, R, torch.tensor([25.0]).double(), theta, side)[0]
     assert valid.item() and p[0] > 10.0  # on the wall, not on the floor beyond/below it
@@ -208,7 +208,7 @@ def test_first_crossing_is_taken_and_out_of_beam_is_invalid():
     # a beam that ends above the seafloor sees nothing; one that starts below it neither
     for limits in ((0.0, 0.2), (1.2, 1.5)):
         theta, valid, _ = find_intersections(
-            Wall(), sonar, R, torch.tensor([25.0]).double(), side, limits
+            Wall(), sonar, R, torch.tensor([25.0]).double(), side, limits, "newton"
         )
         assert not valid.item() and torch.isnan(theta).item()
 
@@ -426,13 +426,13 @@ def test_cold_scan_cost_grid_vs_slope_bounded_steps():
     expected = torch.where(in_beam, k_first + 1, 16)
     grid = _Counting(surface)
     th_grid, v_grid, _ = find_intersections(
-        grid, sonar, R, r, side, BEAM, tol_m=1e-4, scan_max_slope=math.inf
+        grid, sonar, R, r, side, BEAM, "newton", tol_m=1e-4, scan_max_slope=math.inf
     )
     assert grid.heights == int(expected.sum())
     # slope-bounded steps (default scan_max_slope = 1): same crossings, far fewer heights;
     # the Newton refinement costs about the same
     march = _Counting(surface)
-    th, valid, _ = find_intersections(march, sonar, R, r, side, BEAM, tol_m=1e-4)
+    th, valid, _ = find_intersections(march, sonar, R, r, side, BEAM, "newton", tol_m=1e-4)
     assert torch.equal(valid, v_grid)
     assert _points_mm(sonar, R, r, side, th, th_grid)[valid].max() < 0.5
     assert march.heights < 0.45 * grid.heights
