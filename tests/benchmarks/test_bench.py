@@ -1,15 +1,21 @@
-"""Benchmark suite: every section at tiny sizes, the report's structure, the FLOP accounting."""
+"""Benchmark suite: every section at tiny sizes, the report's structure, the FLOP accounting,
+the draping benchmark's ray recording, the runner's command line."""
 
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
-from sss2bathy.cli import bench as bench_cli
-from sss2bathy.eval import bench
+from benchmarks import runner
+from benchmarks.demo_stages import demo_stage_times
+from benchmarks.matmul import siren_matmul_flops
+from benchmarks.report import write_report
+from benchmarks.timing import summarize, time_in_turns, time_runs
 
+ROOT = Path(__file__).resolve().parents[2]
 TINY_SIREN = {"hidden": 16, "n_layers": 3, "omega0": 30.0, "n_bins": 48, "max_range_m": 40.0}
 TINY = {
     "siren_step": {
@@ -46,11 +52,13 @@ STATS = ("median", "min", "max", "q1", "q3")
 def doc(tmp_path_factory):
     stage_file = tmp_path_factory.mktemp("report") / "stage_times.json"
     stage_file.write_text(json.dumps({"scale": "demo", "seconds": {"cnn": 95.2, "total": 612.0}}))
-    return bench.run_benchmarks(quick=True, device="cpu", stage_times=stage_file, overrides=TINY)
+    return runner.run_benchmarks(
+        quick=True, device="cpu", root=ROOT, stage_times=stage_file, overrides=TINY
+    )
 
 
 def test_every_section_reports_positive_finite_figures(doc):
-    assert list(doc["sections"]) == [*bench.SECTIONS, "gpu_projection"]
+    assert list(doc["sections"]) == [*runner.SECTIONS, "gpu_projection"]
     for name, section in doc["sections"].items():
         assert section["figures"], name
         for f in section["figures"]:
@@ -84,9 +92,9 @@ def test_siren_step_counts_every_matmul(doc):
 
 def test_siren_matmul_flops_by_hand():
     # 3 layers, width 4: sine 2->4, 4->4, out 4->1; reverse 4x4 and 4x2
-    f = bench.siren_matmul_flops(4, 3, {"height": 1})
+    f = siren_matmul_flops(4, 3, {"height": 1})
     assert f == {"forward": 2 * (8 + 16 + 4), "backward": 0, "total": 56}
-    g = bench.siren_matmul_flops(4, 3, {"gradient_grad": 2})
+    g = siren_matmul_flops(4, 3, {"gradient_grad": 2})
     fwd = 2 * 2 * (8 + 16 + 4 + 16 + 8)
     bwd = 2 * (2 * 2 * (8 + 16 + 16 + 8) - 2 * 8)
     assert g == {"forward": fwd, "backward": bwd, "total": fwd + bwd}
@@ -117,9 +125,9 @@ def test_cnn_batch_cap_and_demo_stage_times(doc):
 
 
 def test_report_files(doc, tmp_path):
-    paths = bench.write_report(doc, tmp_path / "bench")
+    paths = write_report(doc, tmp_path / "bench")
     data = json.loads(paths["json"].read_text())
-    assert set(data["sections"]) == {*bench.SECTIONS, "gpu_projection"}
+    assert set(data["sections"]) == {*runner.SECTIONS, "gpu_projection"}
     assert data["machine"]["device"] == "cpu" and data["mode"] == "quick"
     assert data["other_load_cores"] is None or 0 <= data["other_load_cores"] <= 64
     md = paths["markdown"].read_text()
@@ -131,25 +139,51 @@ def test_report_files(doc, tmp_path):
 
 
 def test_summarize_and_bad_inputs(tmp_path):
-    s = bench.summarize([4.0, 1.0, 3.0, 2.0, 5.0])
+    s = summarize([4.0, 1.0, 3.0, 2.0, 5.0])
     assert (s["median"], s["min"], s["max"], s["q1"], s["q3"], s["n"]) == (3, 1, 5, 2, 4, 5)
     with pytest.raises(ValueError, match="only"):
-        bench.run_benchmarks(only=["nope"])
+        runner.run_benchmarks(only=["nope"], root=ROOT)
     with pytest.raises(ValueError, match="repeats"):
-        bench.time_runs(lambda: None, 0, 0)
+        time_runs(lambda: None, 0, 0)
     with pytest.raises(SystemExit):
-        bench_cli.parse_args(["--only", "finder,nope"])
-    missing = bench.demo_stage_times(tmp_path / "none.json")
+        runner.parse_args(["--only", "finder,nope"])
+    missing = demo_stage_times(tmp_path / "none.json")
     assert missing["figures"] == [] and missing["info"]["missing"]
 
 
-def test_cli_writes_report(tmp_path, capsys):
+def test_time_in_turns_runs_round_robin_after_warmup():
+    calls = []
+    fns = {"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}
+    wall, cpu = time_in_turns(fns, {"a": 3, "b": 1}, warmup=1)
+    assert calls == ["a", "b", "a", "b", "a", "a"]  # warm-up, then rounds while repeats last
+    assert [len(wall["a"]), len(wall["b"]), len(cpu["a"])] == [3, 1, 3]
+    with pytest.raises(ValueError, match="repeats: expected a count for every function"):
+        time_in_turns(fns, {"a": 1}, warmup=0)
+
+
+def test_presets_come_from_the_composed_configs():
+    from benchmarks.config import cnn_preset, project_root, survey_preset
+
+    paper = cnn_preset(ROOT, "paper")
+    assert (paper["base_width"], paper["n_blocks"], paper["batch_size"]) == (64, 7, 64)
+    assert paper["loss"]["kind"] == "normal_aware"
+    survey = survey_preset(ROOT, "synthetic_d1", "tiny")
+    assert survey["sonar"]["n_bins"] > 0 and "terrain" in survey
+    with pytest.raises(ValueError, match="root: expected the project checkout"):
+        project_root(ROOT / "benchmarks")
+
+
+def test_cli_writes_report(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SSS2BATHY_ROOT", str(ROOT))
     stage_file = tmp_path / "stage_times.json"
     stage_file.write_text(json.dumps({"scale": "demo", "seconds": {"prepare_d1": 12.5}}))
     out = tmp_path / "out"
-    rc = bench_cli.main(
+    rc = runner.main(
         ["--only", "demo_stages", "--stage-times", str(stage_file), "--out", str(out)]
+        + ["--root", str(ROOT)]
     )
     assert rc == 0
     assert json.loads((out / "bench.json").read_text())["sections"]["demo_stages"]["figures"]
     assert "| make demo stages | prepare_d1 | 12.5 | s |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        runner.parse_args(["--root", str(tmp_path)])  # no conf/ there

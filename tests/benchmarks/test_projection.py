@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sss2bathy.eval.projection import paper_fit_steps, project_fit_minutes, projection_section
+from benchmarks.projection import paper_fit_steps, project_fit_minutes, projection_section
 
 
 def test_paper_fit_steps():

@@ -1,0 +1,56 @@
+"""What the numbers were measured on, and how busy the machine was meanwhile."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def cpu_clock() -> tuple[float, float, float] | None:
+    """(busy CPU seconds of the machine, of this process, wall time); Linux only."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+    except (OSError, IndexError):
+        return None
+    ticks = [float(v) for v in fields]
+    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0.0)  # idle + iowait
+    hz = float(os.sysconf("SC_CLK_TCK"))
+    t = os.times()
+    own = t.user + t.system + t.children_user + t.children_system
+    return (sum(ticks) - idle) / hz, own, time.perf_counter()
+
+
+def other_load(start: tuple | None, end: tuple | None) -> float | None:
+    """Cores kept busy by *other* processes between two :func:`cpu_clock` readings."""
+    if start is None or end is None or end[2] <= start[2]:
+        return None
+    return max(0.0, ((end[0] - start[0]) - (end[1] - start[1])) / (end[2] - start[2]))
+
+
+def machine_info(device: torch.device) -> dict[str, Any]:
+    """CPU, core count, torch version and threads, device (and GPU name), Python."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info: dict[str, Any] = {
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "device": str(device),
+        "python": platform.python_version(),
+        "ld_preload": os.environ.get("LD_PRELOAD", ""),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
