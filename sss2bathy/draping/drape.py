@@ -35,6 +35,7 @@ import numpy as np
 from sss2bathy.draping.config import DrapeConfig
 from sss2bathy.draping.draped import DrapedLine
 from sss2bathy.draping.surface import DrapeSurface
+from sss2bathy.geometry import arc_basis, head_plane_unit
 from sss2bathy.survey import (
     MASK_NO_HIT,
     MASK_OUT_OF_BEAM,
@@ -48,7 +49,7 @@ from sss2bathy.survey import (
 
 log = logging.getLogger(__name__)
 
-_SIDE_SIGNS = np.array([1.0, -1.0])
+_SIDES = np.array([0, 1])
 
 # Bump when draping's numbers change (part of the draping cache key). 2: fan angles and
 # first-hit ranges in float32 (exact hits still from the face planes), one fan size per
@@ -150,8 +151,9 @@ class _Fan:
     ) -> None:
         R = line.rotation.astype(np.float64)
         self.sonar = line.position.astype(np.float64)
-        self.u = _SIDE_SIGNS[None, :, None] * R[:, None, :, 1]  # (P, 2, 3): sigma vehicle y
-        self.v = np.ascontiguousarray(np.broadcast_to(-R[:, None, :, 2], self.u.shape))  # down
+        # (P, 2, 3) head-plane axes (eq. 10): u = sigma R e_y (outward), v = -R e_z (down)
+        self.u, w = arc_basis(R[:, None], _SIDES)
+        self.v = np.ascontiguousarray(-w)
         th_min, th_max = line.sensor.beam_limits_rad
         a, b = self.u[..., 2], self.v[..., 2]  # world z of the two in-plane axes
         self.theta_down = np.arctan2(-b, -a)  # the in-plane direction pointing most downward
@@ -394,8 +396,8 @@ def _drape_chunk(
         un = np.einsum("qk,qk->q", u_p, normal)
         vn = np.einsum("qk,qk->q", v_p, normal)
         n_norm = np.linalg.norm(normal, axis=1)
-    # eq. 2-3: sigma N_v,y = u . N and N_v,z = -(v . N), so n_lat = u.N / |(u.N, v.N)|
-    nlat_hit = un / np.maximum(np.sqrt(un * un + vn * vn), 1e-12)
+    # eq. 2-3: sigma N_v,y = u . N and N_v,z = -(v . N)
+    nlat_hit = head_plane_unit(un, -vn)[0]
     # incidence: the angle between N and the direction to the sonar, -(y u + z v) / r
     cos_inc = -(y_hit * un + z_hit * vn) / np.maximum(r * n_norm, 1e-12)
     graz_hit = np.pi / 2 - np.arccos(np.clip(cos_inc, -1.0, 1.0))

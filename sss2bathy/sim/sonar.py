@@ -1,7 +1,7 @@
 """Sidescan physics: ray-traced fan beams, non-Lambertian backscatter, receiver chain.
 
 One ping of one head is simulated by casting a dense fan of rays in the head's plane
-(the isotemporal-arc directions of :func:`sss2bathy.geometry.arc_point`) onto a triangle
+(the isotemporal-arc directions of :func:`sss2bathy.geometry.arc_basis`) onto a triangle
 mesh, keeping each ray's *first* hit (so occlusion makes shadows), and adding the echo
 energy of every hit into the range bin of its slant range (so layover and the footprint
 come from the geometry). The energy of a ray of angular weight ``w`` (rad) hitting at
@@ -25,13 +25,12 @@ combined with the balance heuristic, which keeps the energy integral unbiased.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-from sss2bathy.geometry import arc_point, check_rotations
+from sss2bathy.geometry import arc_basis, check_rotations, head_plane_normal, vehicle_normal
 from sss2bathy.sim.config import MaterialParams, SonarParams
 from sss2bathy.survey import (
     MASK_NO_HIT,
@@ -41,6 +40,7 @@ from sss2bathy.survey import (
 )
 
 NO_MATERIAL = 255
+_SIDES = np.array([0, 1])
 _MIN_COS_INCIDENCE = 1e-3
 
 
@@ -183,7 +183,7 @@ def range_bins(sonar: SonarParams) -> tuple[np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------------ ray casting
 class RayCaster:
-    """First-hit ray casting on a triangle mesh (embree through trimesh; slow fallback).
+    """First-hit ray casting on a triangle mesh (embree, through trimesh).
 
     Hit distances are recomputed in float64 from the hit triangle's plane, so they are
     exact to double precision even though embree works in float32.
@@ -192,19 +192,8 @@ class RayCaster:
     def __init__(self, mesh) -> None:  # mesh: trimesh.Trimesh
         if len(mesh.faces) == 0:
             raise ValueError("mesh: expected a mesh with faces, found none")
-        try:
-            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-            self.engine = "embree"
-        except ImportError:  # pragma: no cover - embreex is a dependency
-            from trimesh.ray.ray_triangle import RayMeshIntersector
-
-            warnings.warn(
-                "embreex is not available: falling back to trimesh's pure-Python ray "
-                "caster, which is orders of magnitude slower",
-                stacklevel=2,
-            )
-            self.engine = "trimesh"
         self.mesh = mesh
         self._intersector = RayMeshIntersector(mesh)
         self._v0 = np.asarray(mesh.triangles[:, 0], dtype=np.float64)
@@ -310,10 +299,9 @@ class PingEchoes:
 def fan_basis(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per ping and side, the world directions of depression 0 and pi/2 in the head's plane.
 
-    The vehicle-frame directions come from :func:`sss2bathy.geometry.arc_point` (unit
-    range, identity attitude), so the ray direction at depression ``theta`` is
-    ``cos(theta) e_out + sin(theta) e_down``, exactly the arc direction
-    ``R [0, sigma cos(theta), -sin(theta)]``.
+    ``e_out = u`` and ``e_down = -w`` of :func:`sss2bathy.geometry.arc_basis`, so the ray
+    direction at depression ``theta`` is ``cos(theta) e_out + sin(theta) e_down``, exactly
+    the arc direction ``R [0, sigma cos(theta), -sin(theta)]`` of eq. 10.
 
     Args:
         rotations: ``(P, 3, 3)`` vehicle -> world.
@@ -321,37 +309,8 @@ def fan_basis(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns:
         ``e_out``, ``e_down``: ``(P, 2, 3)`` each (side 0 port, 1 starboard).
     """
-    side = np.array([0, 1])
-    eye = np.broadcast_to(np.eye(3), (2, 3, 3)).copy()
-    ones = np.ones(2)
-    v_out = arc_point(np.zeros(3), eye, ones, np.zeros(2), side)
-    v_down = arc_point(np.zeros(3), eye, ones, np.full(2, math.pi / 2), side)
-    v_down = v_down - np.sum(v_down * v_out, axis=-1, keepdims=True) * v_out  # cos(pi/2) != 0
-    e_out = np.einsum("pij,sj->psi", rotations, v_out)
-    e_down = np.einsum("pij,sj->psi", rotations, v_down)
-    return e_out, e_down
-
-
-def head_plane_axes(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(P * 2, 3)`` world axes whose dot products with a normal give eq. 3's numerators.
-
-    ``sigma N_v,y = N . (sigma R e_y)`` and ``N_v,z = N . (R e_z)``; rows are ordered
-    ``ping * 2 + side``. Tested against :func:`sss2bathy.geometry.head_plane_normal`.
-    """
-    sigma = np.array([1.0, -1.0])
-    lat = sigma[None, :, None] * rotations[:, None, :, 1]
-    up = np.broadcast_to(rotations[:, None, :, 2], lat.shape)
-    return lat.reshape(-1, 3), np.ascontiguousarray(up).reshape(-1, 3)
-
-
-def head_plane_components(
-    normals: np.ndarray, lat_axis: np.ndarray, up_axis: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(n_lat, n_up)`` of world ``normals (N, 3)`` given per-row axes ``(N, 3)`` (eq. 3)."""
-    ny = np.einsum("ij,ij->i", normals, lat_axis)
-    nz = np.einsum("ij,ij->i", normals, up_axis)
-    norm = np.sqrt(ny * ny + nz * nz + 1e-12)
-    return ny / norm, nz / norm
+    u, w = arc_basis(np.asarray(rotations)[:, None], _SIDES)
+    return u, np.ascontiguousarray(-w)
 
 
 def _stratified(rng: np.random.Generator, shape: tuple[int, ...], n: int) -> np.ndarray:
@@ -587,8 +546,7 @@ def _bin_truth(
     ``points``: the same mean of the hit points; the dominant (most energy) material; and
     the geometric fraction of the bin's rays inside the nominal beam.
     """
-    lat_axis, up_axis = head_plane_axes(R)
-    hit_lat, hit_up = head_plane_components(normals, lat_axis[ps], up_axis[ps])
+    hit_lat, hit_up = head_plane_normal(vehicle_normal(normals, R[ps // 2]), ps % 2)
     count = np.bincount(key, minlength=n_key)
     has_hit = count > 0
     e_sum = np.bincount(key, energy, n_key)

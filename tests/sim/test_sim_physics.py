@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from sim_helpers import grid_mesh, north_pings, scene
 
-from sss2bathy.geometry import arc_point, attitude_to_rotation, head_plane_normal, vehicle_normal
+from sss2bathy.geometry import arc_point, attitude_to_rotation
 from sss2bathy.sim.sonar import (
     absorption_db_per_m,
     backscatter,
@@ -17,8 +17,6 @@ from sss2bathy.sim.sonar import (
     calibrate_receiver,
     fan_basis,
     flat_bottom_power,
-    head_plane_axes,
-    head_plane_components,
     range_bins,
     ray_fan,
     receive,
@@ -84,18 +82,6 @@ def test_fan_basis_matches_arc_point():
     expected = arc_point(np.zeros(3), np.repeat(R[:, None], 2, 1), np.ones((5, 2)), theta, side)
     got = np.cos(theta)[..., None] * e_out + np.sin(theta)[..., None] * e_down
     np.testing.assert_allclose(got, expected, atol=1e-12)
-
-
-def test_head_plane_components_match_geometry():
-    rng = np.random.default_rng(4)
-    R = attitude_to_rotation(rng.uniform(0, 6, 6), rng.normal(0, 0.2, 6), rng.normal(0, 0.2, 6))
-    normals = rng.normal(size=(12, 3)) + [0, 0, 3]
-    lat, up = head_plane_axes(R)
-    ping, side = np.repeat(np.arange(6), 2), np.tile([0, 1], 6)
-    got_lat, got_up = head_plane_components(normals, lat, up)
-    exp_lat, exp_up = head_plane_normal(vehicle_normal(normals, R[ping]), side)
-    np.testing.assert_allclose(got_lat, exp_lat, atol=1e-9)
-    np.testing.assert_allclose(got_up, exp_up, atol=1e-9)
 
 
 def test_ray_fan_weights_integrate_the_interval(sonar):
