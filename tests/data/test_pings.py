@@ -8,10 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import pytorch_lightning as pl
 import torch
 
 from sss2bathy.data.pings import PingAltimeterDataModule, build_ping_table
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
+from sss2bathy.losses.normal import NormalLoss
+from sss2bathy.models.normal_cnn import NormalResNet
+from sss2bathy.modules.normal_cnn import NormalCNNModule
 from sss2bathy.survey import (
     MASK_OUT_OF_BEAM,
     MASK_WATER_COLUMN,
@@ -175,12 +179,6 @@ def test_build_ping_table_rejects_mixed_ranges(tiny_survey):
 
 
 def _tiny_checkpoint(folder: Path, channels: tuple[str, ...] = ("intensity",)) -> Path:
-    import pytorch_lightning as pl
-
-    from sss2bathy.losses.normal import NormalLoss
-    from sss2bathy.models.normal_cnn import NormalResNet
-    from sss2bathy.modules.normal_cnn import NormalCNNModule
-
     torch.manual_seed(0)
     module = NormalCNNModule(
         net=functools.partial(NormalResNet, base_width=2, n_blocks=1),

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from sss2bathy.data.windows import SidescanWindowDataModule
 from sss2bathy.eval.learning_curve import (
     RUN_RECORD,
     main,
@@ -119,8 +120,6 @@ def test_two_tiny_runs_share_their_test_lines(tmp_path):
 
 
 def test_n_train_lines_is_validated():
-    from sss2bathy.data.windows import SidescanWindowDataModule
-
     survey = {"kind": "synthetic", "name": "x"}
     for bad in (1, 2.5, True):
         with pytest.raises(ValueError, match="data.n_train_lines: expected null or an integer"):
