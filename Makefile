@@ -13,11 +13,13 @@ SCALE ?= demo
 export SSS2BATHY_ROOT := $(CURDIR)
 
 .PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
-	siren-cnn-n2d siren-lambert siren-lambert-all map d2 d3 report paper sweep-example bench schedule-study tb clean
+	siren-heights-only siren-cnn-n2d siren-lambert siren-lambert-all map d2 d3 report paper \
+	sweep-example sweep-siren bench schedule-study tb clean
 
-help: ## Show this help
-	@grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
-		awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
+help: ## Show this help (target names in colour only on a terminal)
+	@if [ -t 1 ]; then on=$$'\033[36m'; off=$$'\033[0m'; else on=; off=; fi; \
+	grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
+		awk -v on="$$on" -v off="$$off" 'BEGIN {FS = ":.*?## "}; {printf "  %s%-18s%s %s\n", on, $$1, off, $$2}'
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -58,6 +60,9 @@ siren-direct-fit: install ## Paper experiment: SIREN fitted to the MBES grid dir
 
 siren-gt-n2d: install ## Paper experiment: SIREN from draped MBES normals + altimeter
 	$(BIN)/sss2bathy-train experiment=siren_gt_n2d scale=$(SCALE) $(ARGS)
+
+siren-heights-only: install ## Ablation: SIREN from the altimeter heights alone (what the sidescan must beat)
+	$(BIN)/sss2bathy-train experiment=siren_heights_only scale=$(SCALE) $(ARGS)
 
 siren-cnn-n2d: install ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
 	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
@@ -102,6 +107,10 @@ paper: install ## Every experiment at scale=paper (GPU), then the report
 
 sweep-example: install ## A small Hydra multirun sweep (w_H x seed) on SIREN-GT-N2d
 	$(BIN)/sss2bathy-train -m experiment=siren_gt_n2d scale=$(SCALE) model.w_height=0.1,1,10 seed=1,2 $(ARGS)
+
+EXPERIMENT ?= siren_lambert
+sweep-siren: install ## Optuna search of a SIREN fit (w_H, lr, omega0, lr decay) on the held-out altimeter MAE, no MBES needed [EXPERIMENT=siren_lambert]
+	$(BIN)/sss2bathy-train -m experiment=$(EXPERIMENT) hparams_search=siren_optuna scale=$(SCALE) $(ARGS)
 
 bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
 	$(BIN)/python -m sss2bathy.cli.bench $(ARGS)

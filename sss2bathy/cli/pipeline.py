@@ -6,7 +6,8 @@
 Every argument other than ``scale=`` and ``stages=`` is passed to every training stage as a
 Hydra override. Each stage runs as its own process with its own Hydra run folder, so a
 failing stage stops the pipeline with that stage's error and leaves earlier results intact.
-Stage wall times go to ``outputs/report/stage_times.json``.
+Stage wall times go to ``outputs/report/stage_times.json`` (``paths.output_dir=<dir>`` moves
+the runs, the report and the times to ``<dir>``). ``--help`` prints this and runs nothing.
 """
 
 from __future__ import annotations
@@ -41,7 +42,23 @@ STAGES: list[tuple[str, str, list[str]]] = [
 STAGE_NAMES = [s[0] for s in STAGES]
 
 
+HELP_FLAGS = ("-h", "--help")
+
+
+def usage() -> str:
+    """What ``--help`` prints: this module's docstring and the stages in order."""
+    return (
+        "usage: python -m sss2bathy.cli.pipeline [scale=<tiny|demo|paper>] "
+        "[stages=[a,b,...]] [<Hydra override> ...]\n\n"
+        + (__doc__ or "").strip()
+        + "\n\nstages, in order: "
+        + ", ".join(STAGE_NAMES)
+        + "\n"
+    )
+
+
 def parse_args(argv: list[str]) -> tuple[str, list[str], list[str]]:
+    """``(scale, stages, overrides for every training stage)`` of the command line."""
     scale, stages, rest = "demo", list(STAGE_NAMES), []
     for arg in argv:
         if arg.startswith("scale="):
@@ -60,16 +77,25 @@ def parse_args(argv: list[str]) -> tuple[str, list[str], list[str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if any(a in HELP_FLAGS for a in argv):
+        print(usage(), end="")
+        return 0
     setup_environment()
-    scale, selected, extra = parse_args(sys.argv[1:] if argv is None else argv)
+    scale, selected, extra = parse_args(argv)
     root = project_root()
     plan = [s for s in STAGES if s[0] in selected]
     times: dict[str, float] = {}
-    times_path = root / "outputs" / "report" / "stage_times.json"
+    # the outputs folder the stages write to (a paths.output_dir override moves it)
+    given = [a.split("=", 1)[1] for a in extra if a.startswith("paths.output_dir=")]
+    outputs = root / Path(given[-1]).expanduser() if given else root / "outputs"
+    times_path = outputs / "report" / "stage_times.json"
     t_all = time.perf_counter()
     for i, (name, module, overrides) in enumerate(plan, 1):
         args = list(overrides)
-        if module != "sss2bathy.cli.report":
+        if module == "sss2bathy.cli.report":
+            args += ["--outputs", str(outputs)]
+        else:
             # each run keeps its composed config in <run>/.hydra/; don't print it here
             args += [f"scale={scale}", "extras.print_config=false"]
             if module == "sss2bathy.cli.train":
@@ -92,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(times_path, json.dumps({"scale": scale, "seconds": times}, indent=2))
     print(f"\nAll {len(plan)} stages done in {times['total'] / 60:.1f} min.")
     if "report" in selected:
-        print(f"Report: {Path('outputs/report/index.md')}")
+        print(f"Report: {outputs / 'report' / 'index.html'} (and index.md)")
     return 0
 
 
