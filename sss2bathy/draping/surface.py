@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sss2bathy.survey import BathyGrid
-
-log = logging.getLogger(__name__)
 
 
 class _EmbreeScene:
@@ -62,26 +59,10 @@ class _EmbreeScene:
 
 
 def _make_intersector(mesh: Any, engine: str) -> tuple[Any, str]:
-    """``(intersector, engine name)``: an embreex scene, else trimesh's own intersector."""
+    """``(intersector, engine name)``: an embreex scene, or trimesh's ``ray_triangle``
+    intersector (``engine="triangle"``, much slower; a reference)."""
     if engine in ("auto", "embree"):
-        try:
-            return _EmbreeScene(mesh), "embree"
-        except ImportError as exc:
-            if engine == "embree":
-                raise ImportError(
-                    f"drape.engine='embree' needs the embreex package ({exc})"
-                ) from exc
-            log.warning(
-                "embreex is not available (%s); draping with trimesh's ray_triangle "
-                "intersector, which is much slower",
-                exc,
-            )
-    try:
-        import rtree  # noqa: F401  (trimesh's ray_triangle needs it)
-    except ImportError as exc:
-        raise ImportError(
-            "no ray intersector: install embreex (fast) or rtree (for trimesh's ray_triangle)"
-        ) from exc
+        return _EmbreeScene(mesh), "embree"
     from trimesh.ray.ray_triangle import RayMeshIntersector as TriangleIntersector
 
     return TriangleIntersector(mesh), "triangle"

@@ -47,7 +47,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sss2bathy.geometry import world_normal
+from sss2bathy.geometry import incidence_cosine, world_normal
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
 
 if TYPE_CHECKING:
@@ -89,7 +89,7 @@ def lambertian_term(
     """``max(cos(incidence), 0)^exponent`` of ``N`` bins.
 
     The incidence is the angle between the surface normal and the direction from the
-    point to the sonar (:func:`sss2bathy.geometry.incidence_angle`); its cosine is taken
+    point to the sonar; its cosine (:func:`sss2bathy.geometry.incidence_cosine`) is taken
     from the dot product directly, which keeps the gradient finite where the surface
     faces the sonar head-on. Back-facing surfaces (incidence > 90 deg) return 0; for
     exponents below 1 the cosine is floored at 1e-6 in front of the surface so the
@@ -110,10 +110,7 @@ def lambertian_term(
     _check_points("sonar", sonar, normal_world.shape[0])
     if not exponent > 0.0:
         raise ValueError(f"exponent: expected > 0, found {exponent}")
-    to_sonar = sonar - point
-    cos = (normal_world * to_sonar).sum(-1) / (
-        torch.linalg.vector_norm(normal_world, dim=-1) * torch.linalg.vector_norm(to_sonar, dim=-1)
-    ).clamp_min(1e-12)
+    cos = incidence_cosine(normal_world, point, sonar)
     if exponent >= 1.0:
         return cos.clamp(0.0, 1.0) ** exponent
     front = cos > 0.0
@@ -149,28 +146,6 @@ def piecewise_linear(x: torch.Tensor, knots: torch.Tensor, values: torch.Tensor)
     left, right = knots[idx], knots[idx + 1]
     w = ((x - left) / (right - left)).clamp(0.0, 1.0).to(values.dtype)
     return values[idx] * (1.0 - w) + values[idx + 1] * w
-
-
-def beam_pattern_pwl(
-    theta: torch.Tensor, knots_theta: torch.Tensor, values: torch.Tensor
-) -> torch.Tensor:
-    """Beam pattern ``B(theta)``: piecewise linear over depression-angle knots (rad).
-
-    Shapes: ``theta (N,)``, ``knots_theta (K,)``, ``values (K,)`` -> ``(N,)``.
-    See :func:`piecewise_linear`.
-    """
-    return piecewise_linear(theta, knots_theta, values)
-
-
-def range_gain_pwl(
-    range_m: torch.Tensor, knots_m: torch.Tensor, values: torch.Tensor
-) -> torch.Tensor:
-    """Range gain ``G(r)``: piecewise linear over slant-range knots (m).
-
-    Shapes: ``range_m (N,)``, ``knots_m (K,)``, ``values (K,)`` -> ``(N,)``.
-    See :func:`piecewise_linear`.
-    """
-    return piecewise_linear(range_m, knots_m, values)
 
 
 class ReflectivityField(nn.Module):
@@ -403,48 +378,17 @@ class LambertianSensorModel(SensorModel):
         """``(n_gain_knots,)`` range gain at its knots, normalised to geometric mean 1."""
         return (self.gain_log_values - self.gain_log_values.mean()).exp()
 
-    def set_curves(
-        self,
-        scale: float | None = None,
-        beam_values: torch.Tensor | None = None,
-        gain_values: torch.Tensor | None = None,
-    ) -> None:
-        """Set the product ``K * G * B`` from ``K`` and/or values of ``B``, ``G`` at the knots.
-
-        Parts not given keep their current (normalised) shape; ``K * G * B`` afterwards
-        equals the product of the given values.
-        """
-        with torch.no_grad():
-            if scale is not None:
-                if not scale > 0:
-                    raise ValueError(f"scale: expected > 0, found {scale}")
-            log_k = math.log(scale) if scale is not None else float(self.scale.log())
-            for name, given, param, current in (
-                ("beam_values", beam_values, self.beam_log_values, self.beam_values()),
-                ("gain_values", gain_values, self.gain_log_values, self.gain_values()),
-            ):
-                given = current if given is None else given
-                given = torch.as_tensor(given, dtype=param.dtype, device=param.device)
-                if given.shape != param.shape or not bool((given > 0).all()):
-                    raise ValueError(
-                        f"{name}: expected {tuple(param.shape)} positive values, "
-                        f"found shape {tuple(given.shape)}"
-                    )
-                log_k += float(given.log().mean())
-                param.copy_(given.log() - given.log().mean())
-            self.log_scale.fill_(log_k)
-
     def beam_pattern_curve(self, n: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
         """``(theta_rad (n,), B (n,))`` over the beam, detached, for logging."""
         knots = self.beam_knots_rad
         theta = torch.linspace(float(knots[0]), float(knots[-1]), n, device=knots.device)
-        return theta, beam_pattern_pwl(theta, knots, self.beam_values()).detach()
+        return theta, piecewise_linear(theta, knots, self.beam_values()).detach()
 
     def gain_curve(self, n: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
         """``(range_m (n,), G (n,))`` over the gain span, detached, for logging."""
         knots = self.gain_knots_m
         r = torch.linspace(float(knots[0]), float(knots[-1]), n, device=knots.device)
-        return r, range_gain_pwl(r, knots, self.gain_values()).detach()
+        return r, piecewise_linear(r, knots, self.gain_values()).detach()
 
     def parameter_groups(self) -> list[dict[str, Any]]:
         """Optimiser groups: ``K``, ``G``, ``B`` (the sensor's learning rate), and the
@@ -511,8 +455,8 @@ class LambertianSensorModel(SensorModel):
             normal, geo.points.to(normal.dtype), geo.sonar.to(normal.dtype), self.exponent
         )
         # the free log-values (not the normalised curves) keep each knot's gradient its own
-        b = beam_pattern_pwl(geo.theta, self.beam_knots_rad, self.beam_log_values.exp())
-        g = range_gain_pwl(geo.range_m, self.gain_knots_m, self.gain_log_values.exp())
+        b = piecewise_linear(geo.theta, self.beam_knots_rad, self.beam_log_values.exp())
+        g = piecewise_linear(geo.range_m, self.gain_knots_m, self.gain_log_values.exp())
         pred = self.log_scale.exp() * g * b * m
         rho = None
         if self.reflectivity_field is not None:

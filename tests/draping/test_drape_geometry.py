@@ -190,12 +190,6 @@ def test_bad_inputs(make_plane, make_line):
 def test_triangle_engine_fallback(make_plane, make_line):
     grid = make_plane(x_range=(-20, 20), y_range=(-5, 30), cell=1.0)
     line = make_line(n_pings=2, n_bins=60, max_range=20.0, length=5.0)
-    try:
-        import rtree  # noqa: F401
-    except ImportError:
-        with pytest.raises(ImportError, match="rtree"):
-            drape_line(line, grid, {"engine": "triangle"})
-        return
     slow, fast = drape_line(line, grid, {"engine": "triangle"}), drape_line(line, grid)
     assert (slow.mask == fast.mask).mean() > 0.98
 
