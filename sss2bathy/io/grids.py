@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
@@ -49,6 +50,7 @@ __all__ = [
     "read_raster",
     "read_xyz",
     "shift_grid",
+    "spike_mask",
 ]
 
 RASTER_SUFFIXES = (".tif", ".tiff", ".gtiff", ".asc")
@@ -615,6 +617,36 @@ def read_grid(
     if origin is not None:
         grid = shift_grid(grid, origin)
     return grid
+
+
+def spike_mask(heights: np.ndarray, threshold_m: float, window_cells: int = 5) -> np.ndarray:
+    """``(ny, nx)`` bool: valid cells more than ``threshold_m`` from the median of their
+    ``window_cells`` x ``window_cells`` neighbourhood (valid cells only; the grid's edge
+    and no-data do not count). Real grids carry such outliers (fliers, injected spikes).
+
+    >>> h = np.zeros((7, 7)); h[3, 3] = 5.0
+    >>> np.argwhere(spike_mask(h, 1.0)).tolist()
+    [[3, 3]]
+    """
+    h = np.asarray(heights, dtype=np.float64)
+    if h.ndim != 2:
+        raise ValueError(f"heights: expected a (ny, nx) grid, found shape {h.shape}")
+    if not threshold_m > 0:
+        raise ValueError(f"threshold_m: expected > 0, found {threshold_m}")
+    if window_cells < 3 or window_cells % 2 == 0:
+        raise ValueError(f"window_cells: expected an odd integer >= 3, found {window_cells}")
+    half = window_cells // 2
+    padded = np.pad(h, half, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (window_cells, window_cells))
+    median = np.full(h.shape, np.nan)
+    rows = max(1, 2_000_000 // (h.shape[1] * window_cells**2))  # bounded memory per chunk
+    for r0 in range(0, h.shape[0], rows):
+        block = windows[r0 : r0 + rows].reshape(-1, h.shape[1], window_cells**2)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: NaN median
+            median[r0 : r0 + rows] = np.nanmedian(block, axis=-1)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(h) & (np.abs(h - median) > threshold_m)
 
 
 def footprint_coverage(grid: BathyGrid, lines: list) -> dict[str, float]:

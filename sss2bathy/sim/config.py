@@ -9,10 +9,12 @@ and what was found.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 from sss2bathy.utils.atomic import stable_hash
@@ -176,12 +178,106 @@ class BoulderParams:
     ridge_affinity: float = 2.0
 
 
+GRID_SUFFIXES = (".tif", ".tiff", ".gtiff", ".asc", ".bag", ".xyz", ".txt", ".csv", ".pts")
+
+
+@dataclass(frozen=True)
+class GridTerrainParams:
+    """A real bathymetry grid as the terrain (``data.survey.terrain.grid``).
+
+    The survey's local frame has its origin at the grid's SW cell centre and the grid's CRS,
+    so the outputs are georeferenced where the grid is. ``spike_threshold_m``: cells more
+    than this from the median of their ``spike_window_cells`` square are removed (None: no
+    filter). Holes (no-data and removed spikes) of at most ``fill_max_area_m2`` that do not
+    touch the grid's edge are filled for rendering only (flagged); the others are no seabed
+    (the sidescan there is masked as no hit). ``detail``: procedural relief and boulders
+    below the grid's resolution on a ``detail_cell_m`` render grid. ``materials_raster``:
+    a classification (material indices, ``materials_kind: classes``) or backscatter
+    (``materials_kind: backscatter``, cut by the class fractions, low backscatter = first
+    class) raster in the grid's CRS; None: the procedural material map.
+    """
+
+    path: str
+    band: int = 1
+    source_crs: str | None = None
+    z_positive: str = "up"
+    spike_threshold_m: float | None = None
+    spike_window_cells: int = 5
+    fill_max_area_m2: float = 25.0
+    detail: bool = False
+    detail_cell_m: float = 0.25
+    materials_raster: str | None = None
+    materials_kind: str = "classes"
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of a file (the cache key of a grid terrain, not its machine-specific path)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _existing_file(path: str, value: Any, what: str, suffixes: Sequence[str]) -> str:
+    if not isinstance(value, str) or not value:
+        raise config_error(path, f"a path to {what}", value)
+    if Path(value).suffix.lower() not in suffixes:
+        raise config_error(path, f"a file ending in one of {list(suffixes)}", value)
+    if not Path(value).is_file():
+        raise config_error(path, f"an existing {what} (file missing)", value)
+    return value
+
+
+def _read_grid_terrain(r: _Reader, grid_path: str) -> GridTerrainParams:
+    path = _existing_file(
+        grid_path, r.raw("grid"), "bathymetry grid (GeoTIFF, BAG, ESRI ASCII, XYZ)", GRID_SUFFIXES
+    )
+    spikes = r.section("spike_filter")
+    enabled = spikes.raw("enabled")
+    if enabled is None:
+        enabled = False
+    if not isinstance(enabled, bool):
+        raise config_error(f"{spikes.path}.enabled", "true or false", enabled)
+    threshold = spikes.number("threshold_m", 1.0, gt=0.0)
+    window = spikes.integer("window_cells", 5, ge=3)
+    if window % 2 == 0:
+        raise config_error(f"{spikes.path}.window_cells", "an odd integer >= 3", window)
+    spikes.done()
+    detail = r.raw("detail")
+    if detail is None:
+        detail = False
+    if not isinstance(detail, bool):
+        raise config_error(f"{r.path}.detail", "true or false", detail)
+    raster = r.raw("materials_raster")
+    if raster is not None:
+        raster = _existing_file(
+            f"{r.path}.materials_raster", raster, "materials raster", GRID_SUFFIXES
+        )
+    crs = r.text("grid_crs", None)
+    return GridTerrainParams(
+        path=path,
+        band=r.integer("grid_band", 1, ge=1),
+        source_crs=crs,
+        z_positive=r.choice("grid_z_positive", "up", ("up", "down")),
+        spike_threshold_m=threshold if enabled else None,
+        spike_window_cells=window,
+        fill_max_area_m2=r.number("fill_max_area_m2", 25.0, ge=0.0),
+        detail=detail,
+        detail_cell_m=r.number("detail_cell_m", 0.25, gt=0.0),
+        materials_raster=raster,
+        materials_kind=r.choice("materials_kind", "classes", ("classes", "backscatter")),
+    )
+
+
 @dataclass(frozen=True)
 class TerrainParams:
     """Seafloor geometry (metres, radians).
 
     The terrain covers ``[0, size_m[0]] x [0, size_m[1]]`` (x East, y North) in the local
-    frame; heights are negative (z = -depth).
+    frame; heights are negative (z = -depth). With ``grid`` (a real bathymetry grid) the
+    grid is the terrain: size, cell, depth and regional slope come from it, and the relief
+    and boulder parameters describe the optional sub-cell detail only.
     """
 
     size_m: tuple[float, float] = (350.0, 300.0)
@@ -195,12 +291,42 @@ class TerrainParams:
     boulders: BoulderParams = BoulderParams()
     texture_cell_m: float = 0.25
     mbes_noise_m: float = 0.02
+    grid: GridTerrainParams | None = None
+
+
+#: procedural-only terrain keys: refused next to ``grid`` (the grid gives them)
+_PROCEDURAL_ONLY = (
+    "size_m", "cell_m", "mean_depth_m", "regional_slope_deg", "regional_slope_azimuth_deg",
+    "ridges",
+)  # fmt: skip
+#: grid-only terrain keys: refused without ``grid``
+_GRID_ONLY = (
+    "grid_band", "grid_crs", "grid_z_positive", "spike_filter", "fill_max_area_m2", "detail",
+    "detail_cell_m", "materials_raster", "materials_kind",
+)  # fmt: skip
 
 
 def _read_terrain(r: _Reader) -> TerrainParams:
+    if r.data.get("grid") is not None:
+        given = sorted(k for k in _PROCEDURAL_ONLY if k in r.data)
+        if given:
+            raise ValueError(
+                f"{r.path}: expected no {given} next to {r.path}.grid (the grid gives them), "
+                f"found {given}"
+            )
+        grid = _read_grid_terrain(r, f"{r.path}.grid")
+    else:
+        r.used.add("grid")
+        given = sorted(k for k in _GRID_ONLY if k in r.data)
+        if given:
+            raise ValueError(
+                f"{r.path}: keys {given} apply to a grid terrain only; expected "
+                f"{r.path}.grid: PATH with them, found no grid"
+            )
+        grid = None
     size = r.pair("size_m", (350.0, 300.0), gt=0.0, ordered=False)
     cell = r.number("cell_m", 0.5, gt=0.0)
-    if min(size) < 8 * cell:
+    if grid is None and min(size) < 8 * cell:
         raise config_error(f"{r.path}.size_m", f"at least 8 cells ({8 * cell} m) per side", size)
     wl = r.numbers("relief_wavelengths_m", TerrainParams.relief_wavelengths_m, ge=0.0)
     amp = r.numbers("relief_amplitudes_m", TerrainParams.relief_amplitudes_m, ge=0.0)
@@ -242,7 +368,13 @@ def _read_terrain(r: _Reader) -> TerrainParams:
         boulders=boulders,
         texture_cell_m=r.number("texture_cell_m", 0.25, gt=0.0),
         mbes_noise_m=r.number("mbes_noise_m", 0.02, ge=0.0),
+        grid=grid,
     )
+    if grid is not None:  # 0 = given by the grid
+        params = replace(
+            params, size_m=(0.0, 0.0), cell_m=0.0, mean_depth_m=0.0, regional_slope_rad=0.0,
+            regional_slope_azimuth_rad=0.0, ridges=RidgeParams(density_per_ha=0.0),
+        )  # fmt: skip
     r.done()
     return params
 
@@ -384,6 +516,13 @@ class PlanParams:
     Lines come in two perpendicular sets: the ``main`` set runs along ``main_axis``, the
     ``cross`` set perpendicular to it. Test lines are split half/half between the sets (the
     paper's test lines); ``train_cross_fraction`` of the training lines are cross lines.
+    With ``heading_rad`` (clockwise from North) the main lines run at that heading and the
+    cross lines at +90 degrees, each clipped to the longest stretch (>= ``min_line_m``)
+    whose track stays inside the terrain's valid footprint (a grid terrain's irregular
+    outline, ``margin_m`` in from its edge; the swath may leave it: those bins are no hit;
+    on procedural terrain the whole swath stays on the terrain), ``line_spacing_m`` apart
+    (None: spread over the footprint). A grid terrain without a heading takes the
+    footprint's long axis.
     """
 
     n_train: int = 45
@@ -407,6 +546,13 @@ class PlanParams:
     nav_position_noise_m: float = 0.0
     nav_attitude_noise_rad: float = 0.0
     nav_noise_correlation_s: float = 10.0
+    heading_rad: float | None = None
+    min_line_m: float = 20.0
+
+
+def _optional_radians(r: _Reader, key: str) -> float | None:
+    path, value = r._get(key, None)
+    return None if value is None else math.radians(_check_number(path, value))
 
 
 def _read_plan(r: _Reader) -> PlanParams:
@@ -434,6 +580,8 @@ def _read_plan(r: _Reader) -> PlanParams:
         nav_position_noise_m=nav.number("position_m", 0.0, ge=0.0),
         nav_attitude_noise_rad=math.radians(nav.number("attitude_deg", 0.0, ge=0.0, lt=30.0)),
         nav_noise_correlation_s=nav.number("correlation_s", 10.0, gt=0.0),
+        heading_rad=_optional_radians(r, "heading_deg"),
+        min_line_m=r.number("min_line_m", 20.0, gt=0.0),
     )
     motion.done()
     nav.done()
@@ -623,8 +771,16 @@ class SyntheticSurveyConfig:
         if not name or "/" in name or "\\" in name or name.startswith(".") or "$" in name:
             raise config_error(f"{ROOT}.name", "a plain folder name (e.g. synthetic_d1_demo)", name)
         seed = r.integer("seed", 0, ge=0)
-        origin = _read_origin(r.section("origin"))
         terrain = _read_terrain(r.section("terrain"))
+        if terrain.grid is None:
+            origin = _read_origin(r.section("origin"))
+        else:
+            path, given = r._get("origin", None)
+            if given is not None:
+                raise config_error(
+                    path, "no origin next to terrain.grid (the grid gives it)", given
+                )
+            origin = {}
         materials = _read_materials(r.section("materials"))
         plan = _read_plan(r.section("plan"))
         sonar = _read_sonar(r.section("sonar"))
@@ -645,11 +801,32 @@ class SyntheticSurveyConfig:
         return _plain(d)
 
     def hash(self) -> str:
-        """Cache key: the resolved config minus unhashed keys, plus the generator version."""
+        """Cache key: the resolved config minus unhashed keys, plus the generator version.
+
+        Options that are off (randomize, a grid terrain, a plan heading) leave the key as it
+        was before they existed. A grid terrain enters by its file's name and SHA-256, not
+        its path, so the same grid anywhere gives the same key.
+        """
         d = {k: v for k, v in self.to_dict().items() if k not in UNHASHED_KEYS}
         if d.get("randomize") is None:  # off: the same data (and cache key) as without it
             d.pop("randomize", None)
+        for section, key, neutral in _NEUTRAL_KEYS:
+            if d[section].get(key) == neutral:
+                d[section].pop(key)
+        grid = d["terrain"].get("grid")
+        if grid is not None:
+            for key in ("path", "materials_raster"):
+                if grid[key] is not None:
+                    grid[key] = {"name": Path(grid[key]).name, "sha256": file_digest(grid[key])}
         return stable_hash({"generator_version": GENERATOR_VERSION, "config": d})
+
+
+#: keys added after the first presets, with the value at which they change nothing
+_NEUTRAL_KEYS = (
+    ("terrain", "grid", None),
+    ("plan", "heading_rad", None),
+    ("plan", "min_line_m", 20.0),
+)
 
 
 def _read_origin(r: _Reader) -> dict:

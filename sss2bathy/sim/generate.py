@@ -18,11 +18,15 @@ import numpy as np
 from sss2bathy.sim.config import GENERATOR_VERSION, RandomizeParams, SyntheticSurveyConfig
 from sss2bathy.sim.plan import PlannedLine, plan_survey, validate_swath
 from sss2bathy.sim.sonar import (
+    MASK_NO_HIT,
+    MASK_SHADOW,
+    MASK_WATER_COLUMN,
     MaterialResponse,
     RayCaster,
     ReceiverCalibration,
     absorption_db_per_m,
     calibrate_receiver,
+    fan_basis,
     range_bins,
     receive,
     simulate_pings,
@@ -32,6 +36,8 @@ from sss2bathy.sim.terrain import (
     Terrain,
     TerrainSurface,
     generate_terrain,
+    grid_mbes_heights,
+    grid_terrain,
     mbes_heights,
     nlat_statistics,
 )
@@ -75,6 +81,11 @@ def simulate_line(
         altitudes=line.altitude_m,
     )
     intensity = receive(echoes.power_raw, cfg.sonar, physics.calibration, rng, physics.absorption)
+    terrain = surface.terrain if isinstance(surface, TerrainSurface) else None
+    if terrain is not None and terrain.no_seabed is not None:
+        echoes.mask = mask_no_seabed(
+            echoes.mask, line.position, line.rotation, line.altitude_m, cfg.sonar, terrain
+        )
     return SidescanLine(
         name=line.name,
         time_s=line.time_s,
@@ -93,6 +104,44 @@ def simulate_line(
             "true_rotation": line.rotation,
         },
     )
+
+
+def mask_no_seabed(
+    mask: np.ndarray,
+    positions: np.ndarray,
+    rotations: np.ndarray,
+    altitudes: np.ndarray,
+    sonar,
+    terrain: Terrain,
+) -> np.ndarray:
+    """``mask`` with the empty bins that look at no seabed (a grid terrain's large holes,
+    its outside) marked no hit instead of shadow.
+
+    A bin's ground point is where its slant range meets a level seabed at the ping's
+    altitude, along the fan's outward direction; bins nearer than the altitude keep their
+    bits.
+    """
+    r = range_bins(sonar)[0]
+    e_out, _ = fan_basis(np.asarray(rotations, dtype=np.float64))
+    horiz = e_out[..., :2]
+    horiz = horiz / np.maximum(np.linalg.norm(horiz, axis=-1, keepdims=True), 1e-12)
+    alt = np.asarray(altitudes, dtype=np.float64)[:, None, None]
+    with np.errstate(invalid="ignore"):
+        ground = np.sqrt(r[None, None, :] ** 2 - alt**2)  # (P, 1, B); NaN inside the altitude
+    xy = positions[:, None, None, :2] + ground[..., None] * horiz[:, :, None, :]
+    ix = np.rint(xy[..., 0] / terrain.cell_m)
+    iy = np.rint(xy[..., 1] / terrain.cell_m)
+    ny, nx = terrain.heights.shape
+    known = np.isfinite(ix) & np.isfinite(iy)
+    inside = known & (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    seabed = np.zeros(mask.shape, bool)
+    sel = np.nonzero(inside)
+    seabed[sel] = terrain.seabed[iy[sel].astype(np.int64), ix[sel].astype(np.int64)]
+    empty = (mask & (MASK_SHADOW | MASK_NO_HIT)) > 0
+    relabel = empty & known & ~seabed & ((mask & MASK_WATER_COLUMN) == 0)
+    out = mask.copy()
+    out[relabel] = MASK_NO_HIT
+    return out
 
 
 def altitude_summary(planned: list[PlannedLine]) -> dict[str, dict[str, float]]:
@@ -236,9 +285,17 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
     """
     t_start = time.perf_counter()
     seed = config.seed
-    terrain = generate_terrain(
-        config.terrain, config.materials, np.random.default_rng([seed, _STAGE_TERRAIN])
-    )
+    origin = dict(config.origin)
+    source = None
+    if config.terrain.grid is not None:
+        terrain, source = grid_terrain(
+            config.terrain, config.materials, np.random.default_rng([seed, _STAGE_TERRAIN])
+        )
+        origin = dict(source.origin)
+    else:
+        terrain = generate_terrain(
+            config.terrain, config.materials, np.random.default_rng([seed, _STAGE_TERRAIN])
+        )
     t_terrain = time.perf_counter()
     planned = plan_survey(
         config.plan, config.sonar, terrain, np.random.default_rng([seed, _STAGE_PLAN])
@@ -293,16 +350,14 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
             log.debug("simulated %s (%d pings)", line.name, len(line.time_s))
     t_lines = time.perf_counter()
 
-    crs = config.origin.get("crs")
-    mbes = BathyGrid(
-        mbes_heights(
-            terrain, config.terrain.mbes_noise_m, np.random.default_rng([seed, _STAGE_MBES])
-        ),
-        0.0,
-        0.0,
-        terrain.cell_m,
-        crs,
-    )
+    crs = origin.get("crs")
+    mbes_rng = np.random.default_rng([seed, _STAGE_MBES])
+    if source is not None:  # the MBES truth is the grid itself, not the rendered surface
+        mbes_z = grid_mbes_heights(source, config.terrain.mbes_noise_m, mbes_rng)
+        mbes = BathyGrid(mbes_z, 0.0, 0.0, source.cell_m, crs)
+    else:
+        mbes_z = mbes_heights(terrain, config.terrain.mbes_noise_m, mbes_rng)
+        mbes = BathyGrid(mbes_z, 0.0, 0.0, terrain.cell_m, crs)
     splits = {
         "train": [ln.name for ln in planned if ln.split == "train"],
         "test": [ln.name for ln in planned if ln.split == "test"],
@@ -338,13 +393,16 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
         },
         "terrain": {
             "boulders": int(len(terrain.boulders)),
-            "depth_min_m": float(-terrain.heights.max()),
-            "depth_max_m": float(-terrain.heights.min()),
+            "depth_min_m": float(-terrain.heights[terrain.seabed].max()),
+            "depth_max_m": float(-terrain.heights[terrain.seabed].min()),
             "material_fractions": {
                 name: float(np.mean(terrain.materials == i))
                 for i, name in enumerate(terrain.material_names)
             },
-            "n_lat_grid": nlat_statistics(terrain.dzdx, terrain.dzdy),
+            "n_lat_grid": nlat_statistics(
+                terrain.dzdx[terrain.seabed], terrain.dzdy[terrain.seabed]
+            ),
+            **({"grid": source.summary()} if source is not None else {}),
         },
         "n_lat_valid_bins": {
             "frac_below_0.2": float(np.mean(abs_nlat < 0.2)) if abs_nlat.size else float("nan"),
@@ -365,7 +423,7 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
         lines=lines,
         grid=mbes,
         splits=splits,
-        origin=dict(config.origin),
+        origin=origin,
         metadata=metadata,
     )
     return survey, terrain

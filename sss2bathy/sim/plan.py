@@ -81,7 +81,14 @@ def _test_indices(n_lines: int, n_test: int) -> set[int]:
 def plan_survey(
     plan: PlanParams, sonar: SonarParams, terrain: Terrain, rng: np.random.Generator
 ) -> list[PlannedLine]:
-    """Plan every line (true and recorded navigation); raise if a swath leaves the terrain."""
+    """Plan every line (true and recorded navigation); raise if a swath leaves the terrain.
+
+    Axis-aligned lawnmower sets over the whole rectangle, or, with ``plan.heading_rad`` or a
+    terrain with holes (a real grid), lines at a heading clipped to the valid footprint
+    (:func:`footprint_layout`).
+    """
+    if plan.heading_rad is not None or terrain.no_seabed is not None:
+        return _plan_footprint(plan, sonar, terrain, rng)
     width, height = terrain.extent_m
     z_top = float(terrain.heights.max())
     r_max = sonar.max_range_m
@@ -133,6 +140,171 @@ def plan_survey(
     return lines
 
 
+def _swath_reach(plan: PlanParams, sonar: SonarParams, terrain: Terrain) -> float:
+    """Horizontal reach of the swath (m) from the track, for planning."""
+    r_max = sonar.max_range_m
+    if plan.mount != "hull":
+        return r_max
+    clearance = -plan.sonar_depth_m - float(terrain.heights.max())
+    return math.sqrt(max(r_max**2 - max(clearance, 0.0) ** 2, 0.0))
+
+
+def footprint_clearance(terrain: Terrain) -> np.ndarray:
+    """``(ny, nx)`` distance (m) from each cell centre to the nearest cell without seabed or
+    beyond the grid's edge (the footprint's inside distance)."""
+    from scipy.ndimage import distance_transform_edt
+
+    padded = np.pad(terrain.seabed, 1, constant_values=False)
+    return distance_transform_edt(padded)[1:-1, 1:-1] * terrain.cell_m
+
+
+def footprint_heading(terrain: Terrain) -> float:
+    """Heading (rad, clockwise from North, in [0, pi)) of the valid footprint's long axis."""
+    iy, ix = np.nonzero(terrain.seabed)
+    xy = np.stack([ix, iy], 1) * terrain.cell_m
+    cov = np.cov((xy - xy.mean(0)).T)
+    w, v = np.linalg.eigh(cov)
+    ex, ey = v[:, int(np.argmax(w))]
+    return float(math.atan2(ex, ey) % math.pi)
+
+
+def _longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """``(start, stop)`` of the longest run of True in ``ok`` (``(0, 0)``: none)."""
+    if not ok.any():
+        return 0, 0
+    edges = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
+
+
+def footprint_layout(
+    heading: float,
+    n_lines: int,
+    spacing: float | None,
+    clearance_m: float,
+    step_m: float,
+    min_line_m: float,
+    terrain: Terrain,
+    set_name: str,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Tracks of ``n_lines`` parallel lines at ``heading`` inside the valid footprint.
+
+    Each track is the longest stretch (points ``step_m`` apart) whose points are at least
+    ``clearance_m`` inside the footprint (:func:`footprint_clearance`), kept when it is
+    ``min_line_m`` long. Offsets are ``spacing`` apart around the middle of the footprint's
+    usable width (None: spread over it).
+
+    Returns:
+        ``[(x, y), ...]`` track coordinates (m) in order of their cross-track offset, each
+        running along ``heading``.
+    """
+    if n_lines == 0:
+        return []
+    clear = footprint_clearance(terrain)
+    cell = terrain.cell_m
+    ny, nx = clear.shape
+    along = np.array([math.sin(heading), math.cos(heading)])
+    across = np.array([math.cos(heading), -math.sin(heading)])
+    usable = np.argwhere(clear >= clearance_m)[:, ::-1] * cell
+    if len(usable) == 0:
+        raise SwathOutsideTerrainError(
+            f"data.survey.plan.margin_m: no point of the terrain's footprint lies "
+            f"{clearance_m:.1f} m inside its edge; lower the margin (or the swath reach)"
+        )
+    centre = usable.mean(0)
+    off = (usable - centre) @ across
+    ts = (usable - centre) @ along
+    t = np.arange(ts.min() - step_m, ts.max() + step_m, step_m)
+
+    def track(o: float) -> tuple[np.ndarray, np.ndarray]:
+        pts = centre + o * across + t[:, None] * along
+        ix, iy = np.rint(pts[:, 0] / cell).astype(int), np.rint(pts[:, 1] / cell).astype(int)
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        ok = np.zeros(len(t), bool)
+        ok[inside] = clear[iy[inside], ix[inside]] >= clearance_m
+        a, b = _longest_run(ok)
+        return pts[a:b, 0], pts[a:b, 1]
+
+    def long_enough(o: float) -> bool:
+        x, _ = track(o)
+        return (len(x) - 1) * step_m >= min_line_m
+
+    candidates = np.arange(off.min(), off.max() + cell / 2, cell / 2)
+    fit = [o for o in candidates if long_enough(o)]
+    if not fit:
+        raise SwathOutsideTerrainError(
+            f"data.survey.plan.min_line_m: no {set_name} line at heading "
+            f"{math.degrees(heading):.1f} deg is {min_line_m} m long inside the footprint; "
+            "lower min_line_m or margin_m"
+        )
+    lo, hi = min(fit), max(fit)
+    if spacing is None:
+        offsets = np.linspace(lo, hi, n_lines + 2)[1:-1] if n_lines > 1 else [(lo + hi) / 2]
+    else:
+        mid = (lo + hi) / 2
+        k = np.arange(-int((hi - lo) / spacing) - 1, int((hi - lo) / spacing) + 2)
+        grid = [mid + j * spacing for j in k if lo <= mid + j * spacing <= hi]
+        grid = [o for o in grid if long_enough(o)]
+        if len(grid) < n_lines:
+            raise ValueError(
+                f"data.survey.plan.line_spacing_m: expected a spacing that fits {n_lines} "
+                f"{set_name} lines of >= {min_line_m} m in the footprint, found {spacing} m "
+                f"(room for {len(grid)})"
+            )
+        offsets = sorted(sorted(grid, key=lambda o: abs(o - mid))[:n_lines])
+    tracks = [track(float(o)) for o in offsets]
+    short = [i for i, (x, _) in enumerate(tracks) if (len(x) - 1) * step_m < min_line_m]
+    if short:
+        raise SwathOutsideTerrainError(
+            f"data.survey.plan.min_line_m: {len(short)} of {n_lines} {set_name} lines spread "
+            f"over the footprint are shorter than {min_line_m} m; set plan.line_spacing_m, "
+            "fewer lines or a lower min_line_m"
+        )
+    return tracks
+
+
+def _plan_footprint(
+    plan: PlanParams, sonar: SonarParams, terrain: Terrain, rng: np.random.Generator
+) -> list[PlannedLine]:
+    heading = plan.heading_rad if plan.heading_rad is not None else footprint_heading(terrain)
+    grid_terrain = terrain.no_seabed is not None
+    # a grid's swath may run off its footprint (no hit there); procedural swaths stay on
+    clearance = plan.margin_m
+    if not grid_terrain:
+        clearance += _swath_reach(plan, sonar, terrain) + 4 * plan.nav_position_noise_m
+    clearance = max(clearance, terrain.cell_m)
+    step = plan.speed_mps / plan.ping_rate_hz
+    n_test_cross = plan.n_test // 2
+    n_train_cross = int(round(plan.n_train * plan.train_cross_fraction))
+    sets = [
+        ("main", heading, plan.n_train - n_train_cross, plan.n_test - n_test_cross),
+        ("cross", heading + math.pi / 2, n_train_cross, n_test_cross),
+    ]
+    lines: list[PlannedLine] = []
+    t0 = 0.0
+    for set_name, set_heading, n_train, n_test in sets:
+        n = n_train + n_test
+        tracks = footprint_layout(
+            set_heading, n, plan.line_spacing_m, clearance, step, plan.min_line_m, terrain,
+            set_name,
+        )  # fmt: skip
+        tests = _test_indices(n, n_test) if n_test else set()
+        for k, (x, y) in enumerate(tracks):
+            line_heading = set_heading % (2 * math.pi)
+            if k % 2 == 1:
+                x, y = x[::-1], y[::-1]
+                line_heading = (set_heading + math.pi) % (2 * math.pi)
+            line = _fly_line(
+                f"line_{len(lines):03d}", "test" if k in tests else "train", set_name,
+                np.asarray(x), np.asarray(y), line_heading, t0, plan, terrain, rng,
+            )  # fmt: skip
+            validate_swath(line.name, line.position, line.rotation, sonar, terrain)
+            lines.append(line)
+            t0 = float(line.time_s[-1]) + plan.turn_time_s
+    return lines
+
+
 def _plan_line(
     name: str,
     split: str,
@@ -158,7 +330,25 @@ def _plan_line(
     else:
         x, y = np.full(n, offset), along
         heading = math.pi if reverse else 0.0
+    return _fly_line(name, split, line_set, x, y, heading, t0, plan, terrain, rng)
+
+
+def _fly_line(
+    name: str,
+    split: str,
+    line_set: str,
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: float,
+    t0: float,
+    plan: PlanParams,
+    terrain: Terrain,
+    rng: np.random.Generator,
+) -> PlannedLine:
+    """A track ``(x, y)`` flown at ``heading``: motion, height (mount), navigation noise."""
+    n = len(x)
     time_s = t0 + np.arange(n) / plan.ping_rate_hz
+    step = plan.speed_mps / plan.ping_rate_hz
 
     corr = plan.motion_period_s * plan.ping_rate_hz / 4
     roll = plan.roll_rad * smooth_noise_1d(rng, n, corr)
@@ -213,11 +403,27 @@ def validate_swath(
 
     For each ping, side and a fan of depression angles over the whole simulated fan, the
     farthest point where the ray could meet the seabed within ``max_range`` (between the
-    terrain's highest and lowest heights) must lie on the grid.
+    terrain's highest and lowest heights) must lie on the grid. On a grid terrain (holes,
+    an irregular footprint) only the track is checked: it must be over seabed; swath bins
+    beyond the footprint are masked as no hit.
     """
     width, height = terrain.extent_m
     z_top, z_bottom = float(terrain.heights.max()), float(terrain.heights.min())
     positions = np.asarray(positions, dtype=np.float64)
+    if terrain.no_seabed is not None:  # a grid terrain: the track must be over seabed
+        ix = np.rint(positions[:, 0] / terrain.cell_m).astype(np.int64)
+        iy = np.rint(positions[:, 1] / terrain.cell_m).astype(np.int64)
+        ny, nx = terrain.heights.shape
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        on = np.zeros(len(ix), bool)
+        on[inside] = terrain.seabed[iy[inside], ix[inside]]
+        if not on.all():
+            k = int(np.argmin(on))
+            raise SwathOutsideTerrainError(
+                f"line '{name}': ping {k} at ({positions[k, 0]:.1f}, {positions[k, 1]:.1f}) m "
+                "is not over the grid's valid footprint"
+            )
+        return
     outside = (
         (positions[:, 0] < 0) | (positions[:, 0] > width)
         | (positions[:, 1] < 0) | (positions[:, 1] > height)

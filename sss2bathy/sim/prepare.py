@@ -131,13 +131,21 @@ def prepare_synthetic(cfg: Mapping[str, Any], data_dir: Path, force: bool = Fals
             from sss2bathy.io.export import write_geotiff
 
             os.chmod(tmp, default_dir_mode())  # mkdtemp makes it 0o700 whatever the umask
-            crs = config.origin.get("crs")
-            write_geotiff(terrain.grid(crs), tmp / "truth" / "heights.tif", origin=config.origin)
+            origin = survey.origin  # a grid terrain's origin is the grid's
+            crs = origin.get("crs")
+            write_geotiff(terrain.grid(crs), tmp / "truth" / "heights.tif", origin=origin)
             write_geotiff(
                 BathyGrid(terrain.materials.astype("float32"), 0.0, 0.0, terrain.cell_m, crs),
                 tmp / "truth" / "materials.tif",
-                origin=config.origin,
+                origin=origin,
             )
+            if terrain.source is not None:  # which grid cells were filled, spikes, holes
+                flags = terrain.source.flags().astype("float32")
+                write_geotiff(
+                    BathyGrid(flags, 0.0, 0.0, terrain.source.cell_m, crs),
+                    tmp / "truth" / "grid_flags.tif",
+                    origin=origin,
+                )
             survey.save(tmp)
             write_folder_digest(tmp)
             old = None

@@ -12,12 +12,13 @@ boulders and ridges are rock. Texture is a sub-MBES-resolution reflectivity mult
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
-from sss2bathy.sim.config import MaterialParams, TerrainParams
+from sss2bathy.sim.config import GridTerrainParams, MaterialParams, TerrainParams
 from sss2bathy.survey import BathyGrid
 
 
@@ -33,6 +34,10 @@ class Terrain:
         texture: ``(tny, tnx)`` float32 reflectivity multiplier on a finer grid.
         texture_cell_m: its cell size (m).
         boulders: ``(K, 4)`` boulder centre x, y (m), diameter (m), height (m).
+        no_seabed: ``(ny, nx)`` bool, cells without seabed (a grid terrain's large holes and
+            its outside; ``heights`` there are the nearest valid height, for normals and
+            altitudes only, and the mesh leaves them out); None: seabed everywhere.
+        source: the real grid it was made from (:class:`GridSource`); None: procedural.
     """
 
     heights: np.ndarray
@@ -42,12 +47,27 @@ class Terrain:
     texture: np.ndarray
     texture_cell_m: float
     boulders: np.ndarray
+    no_seabed: np.ndarray | None = None
+    source: GridSource | None = None
 
     def __post_init__(self) -> None:
         self.heights = np.asarray(self.heights, dtype=np.float64)
+        if not np.isfinite(self.heights).all():
+            raise ValueError("heights: expected finite heights (mark holes in no_seabed)")
+        if self.no_seabed is not None and self.no_seabed.shape != self.heights.shape:
+            raise ValueError(
+                f"no_seabed: expected shape {self.heights.shape}, found {self.no_seabed.shape}"
+            )
         dzdy, dzdx = np.gradient(self.heights, self.cell_m)
         self.dzdx, self.dzdy = dzdx, dzdy
         self._up_normal = np.stack([-dzdx, -dzdy, np.ones_like(dzdx)], axis=-1)
+
+    @property
+    def seabed(self) -> np.ndarray:
+        """``(ny, nx)`` bool, cells with seabed."""
+        if self.no_seabed is None:
+            return np.ones(self.heights.shape, bool)
+        return ~self.no_seabed
 
     @property
     def extent_m(self) -> tuple[float, float]:
@@ -56,8 +76,11 @@ class Terrain:
         return (nx - 1) * self.cell_m, (ny - 1) * self.cell_m
 
     def grid(self, crs: str | None = None) -> BathyGrid:
-        """The true heights as a :class:`BathyGrid` (no MBES noise)."""
-        return BathyGrid(self.heights.astype(np.float32), 0.0, 0.0, self.cell_m, crs)
+        """The true heights as a :class:`BathyGrid` (no MBES noise; NaN without seabed)."""
+        heights = self.heights.astype(np.float32)
+        if self.no_seabed is not None:
+            heights[self.no_seabed] = np.nan
+        return BathyGrid(heights, 0.0, 0.0, self.cell_m, crs)
 
     def sample_heights(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear true heights at ``(x, y)`` (clamped to the grid)."""
@@ -395,3 +418,247 @@ def nlat_statistics(dzdx: np.ndarray, dzdy: np.ndarray) -> dict[str, float]:
         "q99.9": float(q[3]),
         "max": float(a.max()),
     }
+
+
+# ---------------------------------------------------------------------- real grids
+@dataclass
+class GridSource:
+    """What a grid terrain was made from (the MBES "truth" and the bookkeeping).
+
+    Attributes:
+        heights: ``(ny, nx)`` the grid's heights after the spike filter (NaN: no-data and
+            removed spikes), at the grid's own cell: the MBES truth before MBES noise.
+        cell_m: the grid's cell size (m).
+        origin: ``{"crs", "easting", "northing"}`` of the grid's SW cell centre (the local
+            frame's origin).
+        spikes: ``(ny, nx)`` bool, cells removed by the spike filter.
+        filled: ``(ny, nx)`` bool, cells filled for rendering (small holes).
+        no_seabed: ``(ny, nx)`` bool, cells left without seabed (large holes, outside).
+    """
+
+    heights: np.ndarray
+    cell_m: float
+    origin: dict
+    spikes: np.ndarray
+    filled: np.ndarray
+    no_seabed: np.ndarray
+
+    def flags(self) -> np.ndarray:
+        """``(ny, nx)`` uint8 per grid cell: 0 valid, 1 filled for rendering, 2 a removed
+        spike (filled), 3 no seabed (a large hole or outside), 4 a removed spike in a large
+        hole."""
+        out = np.zeros(self.heights.shape, np.uint8)
+        out[self.filled] = 1
+        out[self.no_seabed] = 3
+        out[self.spikes] += 1
+        return out
+
+    def summary(self) -> dict[str, float | int | str]:
+        valid = np.isfinite(self.heights)
+        return {
+            "cells": int(self.heights.size),
+            "cell_m": self.cell_m,
+            "valid_fraction": round(float(valid.mean()), 4),
+            "spikes_removed": int(self.spikes.sum()),
+            "cells_filled": int(self.filled.sum()),
+            "cells_no_seabed": int(self.no_seabed.sum()),
+        }
+
+
+def split_holes(
+    valid: np.ndarray, cell: float, fill_max_area_m2: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Small holes (to fill) and large ones (no seabed) of a validity mask.
+
+    A hole is a 4-connected component of invalid cells; it is small when its area is at
+    most ``fill_max_area_m2`` and it does not touch the grid's edge (an edge region is the
+    outside of the survey, whatever its size).
+
+    Returns:
+        ``(small, large)`` bool masks, ``small | large == ~valid``.
+    """
+    from scipy.ndimage import label
+
+    invalid = ~np.asarray(valid, dtype=bool)
+    labels, n = label(invalid)
+    if n == 0:
+        return np.zeros_like(invalid), np.zeros_like(invalid)
+    area = np.bincount(labels.ravel(), minlength=n + 1) * cell * cell
+    edge = np.zeros(n + 1, bool)
+    for border in (labels[0], labels[-1], labels[:, 0], labels[:, -1]):
+        edge[border] = True
+    small_label = (area <= fill_max_area_m2) & ~edge
+    small_label[0] = False
+    small = small_label[labels]
+    return small, invalid & ~small
+
+
+def fill_holes(heights: np.ndarray, holes: np.ndarray, iterations: int = 200) -> np.ndarray:
+    """``heights`` with ``holes`` filled harmonically (Laplace, from the nearest valid
+    heights); other NaN cells are left NaN. A filled plane stays that plane."""
+    from scipy.ndimage import distance_transform_edt
+
+    h = np.array(heights, dtype=np.float64)
+    holes = np.asarray(holes, dtype=bool)
+    if not holes.any():
+        return h
+    valid = np.isfinite(h) & ~holes
+    if not valid.any():
+        raise ValueError("heights: expected valid cells around the holes, found none")
+    idx = distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    start = h[tuple(idx)]
+    out = np.where(holes, start, h)
+    work = np.where(valid | holes, out, np.nan)
+    for _ in range(iterations):
+        padded = np.pad(work, 1, constant_values=np.nan)
+        nb = np.stack([padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(nb, axis=0)
+        work = np.where(holes & np.isfinite(mean), mean, work)
+    out[holes] = work[holes]
+    return out
+
+
+def read_grid_source(params: GridTerrainParams) -> GridSource:
+    """Read a grid terrain's file, remove spikes, split its holes (no sub-cell detail)."""
+    from sss2bathy.io.grids import read_grid, spike_mask
+
+    grid = read_grid(
+        params.path, band=params.band, source_crs=params.source_crs, z_positive=params.z_positive
+    )
+    heights = np.array(grid.heights, dtype=np.float64)
+    if min(heights.shape) < 8:
+        raise ValueError(
+            f"data.survey.terrain.grid: expected at least 8 x 8 cells, found "
+            f"{heights.shape[0]} x {heights.shape[1]} in {params.path}"
+        )
+    spikes = np.zeros(heights.shape, bool)
+    if params.spike_threshold_m is not None:
+        spikes = spike_mask(heights, params.spike_threshold_m, params.spike_window_cells)
+        heights[spikes] = np.nan
+    small, large = split_holes(np.isfinite(heights), grid.cell_size, params.fill_max_area_m2)
+    if large.all():
+        raise ValueError(
+            f"data.survey.terrain.grid: expected valid cells, found none in {params.path}"
+        )
+    origin = {"crs": grid.crs, "easting": float(grid.x0), "northing": float(grid.y0)}
+    return GridSource(heights, float(grid.cell_size), origin, spikes, small, large)
+
+
+def grid_terrain(
+    params: TerrainParams, materials: MaterialParams, rng: np.random.Generator
+) -> tuple[Terrain, GridSource]:
+    """The terrain of a real grid (``params.grid``), in the grid's frame (SW cell centre = 0).
+
+    Small holes are filled (harmonically) for rendering, large ones and the outside have no
+    seabed (their heights are the nearest valid ones, for normals and altitudes only); a
+    grid without large holes is a plain rectangle of seabed (``no_seabed`` None). With
+    ``detail`` the heights are resampled (bilinearly) to ``detail_cell_m`` and the relief
+    components of ``params.relief_wavelengths_m`` no longer than two grid cells plus
+    ``params.boulders`` are added. Materials: ``materials_raster`` or the procedural map
+    (mud in the hollows of the grid's local relief); boulders are rock.
+    """
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    gp = params.grid
+    if gp is None:
+        raise ValueError("params.grid: expected a grid terrain, found None")
+    source = read_grid_source(gp)
+    cell = source.cell_m
+    render = fill_holes(source.heights, source.filled)
+    idx = distance_transform_edt(source.no_seabed, return_distances=False, return_indices=True)
+    render = render[tuple(idx)]  # nearest valid height under the holes
+    no_seabed = source.no_seabed
+    ny, nx = render.shape
+    boulders = np.zeros((0, 4))
+    if gp.detail:
+        dc = gp.detail_cell_m
+        if dc >= cell:
+            raise ValueError(
+                f"data.survey.terrain.detail_cell_m: expected < the grid's cell ({cell} m), "
+                f"found {dc}"
+            )
+        x = np.arange(int(math.floor((nx - 1) * cell / dc + 1e-9)) + 1) * dc
+        y = np.arange(int(math.floor((ny - 1) * cell / dc + 1e-9)) + 1) * dc
+        X, Y = np.meshgrid(x, y)
+        render = bilinear(render, cell, X, Y)
+        no_seabed = bilinear(source.no_seabed.astype(np.float64), cell, X, Y) > 0
+        for wavelength, amplitude in zip(
+            params.relief_wavelengths_m, params.relief_amplitudes_m, strict=True
+        ):
+            if amplitude > 0 and wavelength <= 2 * cell:
+                render = render + amplitude * gaussian_field(rng, X.shape, wavelength / (4 * dc))
+        layer, boulders = _boulders(params, rng, x, y, np.zeros(X.shape))
+        render = render + layer
+        cell = dc
+    else:
+        layer = np.zeros(render.shape)
+    local_relief = render - gaussian_filter(render, materials.map_scale_m / (4 * cell))
+    if float(local_relief.std()) < 1e-6:  # level: filter round-off is not relief
+        local_relief = np.zeros_like(local_relief)
+    mat = _material_map(materials, rng, local_relief, cell)
+    if gp.materials_raster is not None:
+        mat = _raster_materials(gp, materials, source.origin, mat, cell)
+    mat[layer > 0.05] = materials.index(materials.boulder_material)
+    ny, nx = render.shape
+    texture, tcell = _texture(params, materials, rng, mat, cell, (nx - 1) * cell, (ny - 1) * cell)
+    terrain = Terrain(
+        render, cell, mat.astype(np.uint8), materials.names, texture, tcell, boulders,
+        no_seabed if no_seabed.any() else None, source,
+    )  # fmt: skip
+    return terrain, source
+
+
+def _raster_materials(
+    gp: GridTerrainParams,
+    materials: MaterialParams,
+    origin: dict,
+    procedural: np.ndarray,
+    cell: float,
+) -> np.ndarray:
+    """Materials from a classification or backscatter raster (nearest cell, in the grid's
+    CRS); cells it does not cover keep the procedural material."""
+    from sss2bathy.io.grids import read_grid
+
+    raster = read_grid(gp.materials_raster, origin=origin)
+    ny, nx = procedural.shape
+    ix = np.rint((np.arange(nx) * cell - raster.x0) / raster.cell_size).astype(np.int64)
+    iy = np.rint((np.arange(ny) * cell - raster.y0) / raster.cell_size).astype(np.int64)
+    rny, rnx = raster.shape
+    inside = ((ix >= 0) & (ix < rnx))[None, :] & ((iy >= 0) & (iy < rny))[:, None]
+    values = np.full(procedural.shape, np.nan)
+    sel = np.nonzero(inside)
+    values[sel] = raster.heights[np.clip(iy, 0, rny - 1)[sel[0]], np.clip(ix, 0, rnx - 1)[sel[1]]]
+    known = np.isfinite(values)
+    out = procedural.copy()
+    if not known.any():
+        raise ValueError(
+            f"data.survey.terrain.materials_raster: expected to cover the grid, found no "
+            f"overlap ({gp.materials_raster})"
+        )
+    n = len(materials.classes)
+    if gp.materials_kind == "classes":
+        v = values[known]
+        bad = (v != np.rint(v)) | (v < 0) | (v >= n)
+        if bad.any():
+            raise ValueError(
+                f"data.survey.terrain.materials_raster: expected material indices 0..{n - 1} "
+                f"({list(materials.names)}), found {float(v[bad][0])!r} in {gp.materials_raster}"
+            )
+        out[known] = v.astype(np.uint8)
+    else:
+        fractions = np.array([c.fraction for c in materials.classes])
+        cuts = np.quantile(values[known], np.clip(np.cumsum(fractions)[:-1], 0, 1))
+        out[known] = np.searchsorted(cuts, values[known], side="right").astype(np.uint8)
+    return out
+
+
+def grid_mbes_heights(source: GridSource, noise_m: float, rng: np.random.Generator) -> np.ndarray:
+    """The MBES grid of a grid terrain: the grid itself (spikes removed, holes NaN) plus
+    spatially correlated (~1 m) noise of std ``noise_m``."""
+    heights = source.heights.astype(np.float64)
+    if noise_m > 0:
+        noise = gaussian_field(rng, heights.shape, max(0.5 / source.cell_m, 0.5))
+        heights = heights + noise_m * noise
+    return heights.astype(np.float32)
