@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
@@ -357,6 +358,14 @@ class StudySurvey:
         return self.xtf_dir / TRUTH_FILE
 
 
+def survey_config(preset: str, scale: str) -> dict[str, Any]:
+    """The ``data/survey=<preset>`` config at ``scale`` (resolved), composed as the entry
+    points compose it (``conf/predict.yaml``), so the scale's survey sizes apply."""
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        cfg = compose("predict", overrides=[f"data/survey={preset}", f"scale={scale}"])
+    return OmegaConf.to_container(cfg.data.survey, resolve=True)  # type: ignore[return-value]
+
+
 def make_survey(
     out_dir: str | Path,
     seed: int,
@@ -372,18 +381,15 @@ def make_survey(
     line's true altitude and dropped pings. Reused when ``truth.npz`` exists."""
     out = Path(out_dir)
     name = f"xtf_study_{scale}_s{int(seed)}"
-    cfg = OmegaConf.merge(
-        OmegaConf.load(CONF / "data/survey/synthetic_d1.yaml"),
-        OmegaConf.load(CONF / f"survey_scale/synthetic_d1_{scale}.yaml"),
-    )
-    crs = str(cfg.origin.crs)
+    cfg = survey_config("synthetic_d1", scale)
+    crs = str(cfg["origin"]["crs"])
     survey_ = StudySurvey(out, name, crs)
     if survey_.truth_path.is_file():
         return survey_
-    cfg.name = name
-    cfg.seed = int(seed)
-    cfg.plan.mount = "auv"
-    config = SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
+    cfg["name"] = name
+    cfg["seed"] = int(seed)
+    cfg["plan"]["mount"] = "auv"
+    config = SyntheticSurveyConfig.from_mapping(cfg)
     survey, _ = generate_survey(config)
     lines = survey.split_lines(split)
     if not lines:
