@@ -1,4 +1,5 @@
-"""LightningModule training the normal CNN, and its callbacks (validation images, CNN table).
+"""LightningModule training the normal CNN (its images and table writer are callbacks in
+:mod:`sss2bathy.callbacks`).
 
 Batches are dicts (see ``sss2bathy.data`` windows): ``intensity [B,1,H,W] float32``,
 ``n_lat [B,1,H,W] float32``, ``mask [B,1,H,W] bool`` (True = valid), optionally ``inputs
@@ -14,17 +15,16 @@ from __future__ import annotations
 
 import functools
 import logging
-import math
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytorch_lightning as pl
 import torch
-from pytorch_lightning.loggers import TensorBoardLogger
 from torch import nn
 
+# re-exported for the targets of older configs and eval/report.py (until they name
+# sss2bathy.callbacks and sss2bathy.eval.cnn_table)
+from sss2bathy.callbacks import CNNTableWriter, NormalImageLogger, render_window_panel
 from sss2bathy.eval.cnn_table import table_rows_from_metrics
 from sss2bathy.losses.normal import NormalLoss
 from sss2bathy.metrics.normal import NormalMetrics
@@ -321,270 +321,6 @@ class NormalCNNModule(pl.LightningModule):
     def on_test_end(self) -> None:
         """hparams with validation and test metrics (overrides the fit-end record)."""
         self._log_hparams_with_metrics()
-
-
-# --------------------------------------------------------------------- images
-def render_window_panel(
-    intensity: np.ndarray,
-    n_lat_gt: np.ndarray,
-    n_lat_pred: np.ndarray,
-    mask: np.ndarray,
-    normal_limit: float,
-    gap: int = 2,
-) -> np.ndarray:
-    """The paper's CNN figure for one window: rows input / ground truth / prediction / |error|.
-
-    Args:
-        intensity, n_lat_gt, n_lat_pred: ``(H, W)`` float arrays.
-        mask: ``(H, W)`` bool, True = valid; invalid pixels are black in every row.
-        normal_limit: n_lat colour range ``[-normal_limit, normal_limit]`` (``RdBu_r``);
-            the error row spans ``[0, normal_limit]`` (``magma``).
-        gap: white rows between panels.
-
-    Returns:
-        ``(4 H + 3 gap, W, 3)`` uint8 RGB image.
-    """
-    from matplotlib import colormaps
-
-    shape = np.shape(intensity)
-    for name, arr in (("n_lat_gt", n_lat_gt), ("n_lat_pred", n_lat_pred), ("mask", mask)):
-        if np.shape(arr) != shape or len(shape) != 2:
-            raise ValueError(f"{name}: expected a 2D array of shape {shape}, found {np.shape(arr)}")
-    if not normal_limit > 0:
-        raise ValueError(f"normal_limit: expected a positive number, found {normal_limit!r}")
-    mask = np.asarray(mask, dtype=bool)
-    inten = np.asarray(intensity, dtype=np.float64)
-    valid_i = inten[mask & np.isfinite(inten)]
-    lo, hi = np.percentile(valid_i, [1, 99]) if valid_i.size else (0.0, 1.0)
-    gray = np.clip((inten - lo) / max(hi - lo, 1e-12), 0, 1)
-    rows = [
-        colormaps["gray"](gray)[..., :3],
-        colormaps["RdBu_r"]((np.asarray(n_lat_gt) + normal_limit) / (2 * normal_limit))[..., :3],
-        colormaps["RdBu_r"]((np.asarray(n_lat_pred) + normal_limit) / (2 * normal_limit))[..., :3],
-        colormaps["magma"](np.abs(np.asarray(n_lat_pred) - n_lat_gt) / normal_limit)[..., :3],
-    ]
-    spacer = np.ones((gap, shape[1], 3))
-    parts = []
-    for i, rgb in enumerate(rows):
-        rgb = np.where(mask[..., None], np.nan_to_num(rgb), 0.0)
-        parts += [rgb] if i == 0 else [spacer, rgb]
-    return (np.concatenate(parts, axis=0) * 255).round().astype(np.uint8)
-
-
-class NormalImageLogger(pl.Callback):
-    """Every ``every_n_epochs`` validation epochs, logs input / GT / prediction / error images
-    of ``n_images`` fixed validation windows to TensorBoard (``val_images/window_{i}``).
-
-    The windows are the ones with the most valid pixels in the first validation batch (taken
-    once, so the same windows are shown every time). Nothing happens without a
-    ``TensorBoardLogger``.
-    """
-
-    def __init__(self, every_n_epochs: int = 5, n_images: int = 4) -> None:
-        if not isinstance(every_n_epochs, int) or every_n_epochs < 1:
-            raise ValueError(f"every_n_epochs: expected an integer >= 1, found {every_n_epochs!r}")
-        if not isinstance(n_images, int) or n_images < 1:
-            raise ValueError(f"n_images: expected an integer >= 1, found {n_images!r}")
-        self.every_n_epochs = every_n_epochs
-        self.n_images = n_images
-        self.windows: dict[str, torch.Tensor] | None = None
-        self.normal_limit = 0.5
-
-    @staticmethod
-    def _tensorboard(trainer: pl.Trainer) -> TensorBoardLogger | None:
-        return next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
-
-    def on_validation_batch_end(
-        self,
-        trainer: pl.Trainer,
-        pl_module: pl.LightningModule,
-        outputs: Any,
-        batch: Mapping[str, torch.Tensor],
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        if self.windows is not None or self._tensorboard(trainer) is None:
-            return
-        valid = batch["mask"].flatten(1).sum(1)
-        pick = torch.argsort(valid, descending=True, stable=True)[: self.n_images]
-        keys = [*BATCH_KEYS, *(["inputs"] if "inputs" in batch else [])]
-        self.windows = {k: batch[k][pick].detach().cpu().clone() for k in keys}
-        gt = self.windows["n_lat"][self.windows["mask"]].abs()
-        if gt.numel():
-            # colour range from the shown windows' ground truth (n_lat is mostly near 0)
-            self.normal_limit = max(0.05, float(torch.quantile(gt.float(), 0.98)))
-
-    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        tb = self._tensorboard(trainer)
-        if tb is None or self.windows is None or trainer.sanity_checking:
-            return
-        if trainer.current_epoch % self.every_n_epochs:
-            return
-        with torch.no_grad():
-            inputs = NormalCNNModule.batch_inputs(self.windows)
-            pred = pl_module(inputs.to(pl_module.device)).float().cpu()
-        for i in range(pred.shape[0]):
-            panel = render_window_panel(
-                self.windows["intensity"][i, 0].numpy(),
-                self.windows["n_lat"][i, 0].numpy(),
-                pred[i, 0].numpy(),
-                self.windows["mask"][i, 0].numpy(),
-                self.normal_limit,
-            )
-            tb.experiment.add_image(
-                f"val_images/window_{i}", panel, trainer.global_step, dataformats="HWC"
-            )
-
-
-# --------------------------------------------------------------------- table
-class CNNTableWriter(pl.Callback):
-    """After testing, writes the Table-2-style CNN table (Markdown + CSV, the paper's numbers
-    beside ours) into ``out_dir`` from the ``test/{name}/...`` metrics, with a
-    constant-prediction row per test set and the per-line, per-side bias files.
-
-    * **Constant prediction**: the mean n_lat over the valid bins of the datamodule's
-      *training* lines (``datamodule.train_set.lines``, never test data), scored with the
-      same metrics on every test batch's valid bins. Its metrics go to the table and, as
-      ``test/{name}/constant/{metric}`` (plus ``.../value``), into the module's
-      ``final_metrics`` (hence the run's ``metrics.json``); ``data/n_train_lines`` and
-      ``data/n_val_lines`` are recorded too. A datamodule without training lines gets no
-      constant row (a warning says so).
-    * **Bias**: ``cnn_bias.csv``, ``cnn_bias_range.csv`` and ``cnn_bias.png``
-      (:func:`sss2bathy.eval.cnn_table.write_cnn_bias`) from the test predictions, which
-      ``test_step`` returns as ``{"pred": ...}``.
-
-    Args:
-        out_dir: the run folder.
-        n_range_bins: groups of bins across track in the bias-against-range panel.
-
-    Under DDP each rank scores its share; the constant metrics are reduced across ranks,
-    the bias files hold rank 0's share.
-    """
-
-    def __init__(self, out_dir: str | Path, n_range_bins: int = 16) -> None:
-        if not isinstance(n_range_bins, int) or isinstance(n_range_bins, bool) or n_range_bins < 1:
-            raise ValueError(f"n_range_bins: expected an integer >= 1, found {n_range_bins!r}")
-        self.out_dir = Path(out_dir)
-        self.n_range_bins = n_range_bins
-        self.paths: tuple[Path, Path] | None = None
-        self.bias_paths: tuple[Path, Path, Path] | None = None
-        self.constant: float | None = None
-        self._const_metrics: dict[int, Any] = {}
-        self._bias: dict[int, Any] = {}
-
-    @staticmethod
-    def training_lines(trainer: pl.Trainer) -> list[Any] | None:
-        """The datamodule's training lines (``train_set.lines``, set up for ``fit`` if the
-        run only tests), or None when the datamodule has none."""
-        dm = getattr(trainer, "datamodule", None)
-        if dm is None or not hasattr(dm, "train_set"):
-            return None
-        if dm.train_set is None:
-            log.info("CNN table: setting the training lines up for the constant prediction")
-            dm.setup("fit")
-        lines = getattr(dm.train_set, "lines", None)
-        return list(lines) if lines else None
-
-    def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        from sss2bathy.metrics.normal import masked_mean
-
-        self._const_metrics, self._bias = {}, {}
-        lines = self.training_lines(trainer)
-        if lines is None:
-            self.constant = None
-            log.warning(
-                "CNN table: the datamodule has no training lines (train_set.lines); "
-                "no constant-prediction row"
-            )
-            return
-        self.constant = masked_mean([ln.n_lat for ln in lines], [ln.valid for ln in lines])
-        log.info("CNN table: constant prediction = training mean n_lat %+.5f", self.constant)
-
-    def on_test_batch_end(
-        self,
-        trainer: pl.Trainer,
-        pl_module: pl.LightningModule,
-        outputs: Any,
-        batch: Mapping[str, torch.Tensor],
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        from sss2bathy.metrics.normal import LineSideBias
-
-        if self.constant is not None:
-            if dataloader_idx not in self._const_metrics:
-                self._const_metrics[dataloader_idx] = NormalMetrics().to(pl_module.device)
-            target = batch["n_lat"]
-            const = torch.full_like(target, self.constant)
-            self._const_metrics[dataloader_idx].update(const, target, batch["mask"])
-        if not isinstance(outputs, Mapping) or "pred" not in outputs:
-            raise ValueError(
-                "test_step outputs: expected a dict with the predictions under 'pred' "
-                f"(for the bias files), found {type(outputs).__name__}"
-            )
-        for key in ("line", "side", "bin_start"):
-            if key not in batch:
-                raise ValueError(f"batch: missing key '{key}' (for the bias files)")
-        acc = self._bias.setdefault(dataloader_idx, LineSideBias())
-        acc.update(
-            outputs["pred"], batch["n_lat"], batch["mask"],
-            batch["line"], batch["side"], batch["bin_start"],
-        )  # fmt: skip
-
-    def _line_names(self, trainer: pl.Trainer, idx: int) -> list[str] | None:
-        sets = getattr(getattr(trainer, "datamodule", None), "test_sets", None)
-        if sets is not None and idx < len(sets):
-            names = getattr(sets[idx], "line_names", None)
-            return list(names) if names is not None else None
-        return None
-
-    def _bias_rows(self, pl_module: pl.LightningModule) -> tuple[list, list]:
-        from sss2bathy.eval.cnn_table import SIDES
-
-        line_rows, range_rows = [], []
-        for idx in sorted(self._bias):
-            name = pl_module.test_set_name(idx) or "test"
-            names = self._line_names(pl_module.trainer, idx)
-            acc = self._bias[idx]
-            for r in acc.line_side_rows():
-                line = names[r["line"]] if names else f"line_{r['line']}"
-                line_rows.append({**r, "dataset": name, "line": line, "side": SIDES[r["side"]]})
-            for r in acc.range_rows(self.n_range_bins):
-                range_rows.append({**r, "dataset": name, "side": SIDES[r["side"]]})
-        return line_rows, range_rows
-
-    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        from sss2bathy.eval.cnn_table import constant_metric_keys, write_cnn_bias, write_cnn_table
-
-        # computed on every rank: the metrics' compute() reduces across DDP processes
-        constant_rows = {}
-        for idx in sorted(self._const_metrics):
-            name = pl_module.test_set_name(idx) or "test"
-            row = {k: float(v) for k, v in self._const_metrics[idx].compute().items()}
-            constant_rows[name] = {**row, "value": float(self.constant)}
-        if not trainer.is_global_zero:
-            return
-        final = getattr(pl_module, "final_metrics", None)
-        if isinstance(final, dict):
-            for name, row in constant_rows.items():
-                final.update(constant_metric_keys(name, row))
-            dm = getattr(trainer, "datamodule", None)
-            for key in ("train_lines", "val_lines"):
-                if getattr(dm, key, None):
-                    final[f"data/n_{key}"] = float(len(getattr(dm, key)))
-        rows = table_rows_from_metrics(trainer.callback_metrics)
-        if not rows:
-            log.warning("CNN table: no complete test/<name>/<metric> set was logged; not written")
-            return
-        if any(not math.isfinite(v) for row in rows.values() for v in row.values()):
-            log.warning("CNN table: some test metrics are not finite (no valid pixel?)")
-        constant_rows = {k: v for k, v in constant_rows.items() if k in rows}
-        self.paths = write_cnn_table(rows, self.out_dir, constant_rows or None)
-        log.info("CNN table written to %s", self.paths[0])
-        line_rows, range_rows = self._bias_rows(pl_module)
-        if line_rows:
-            self.bias_paths = write_cnn_bias(line_rows, range_rows, self.out_dir)
-            log.info("CNN bias per line and side written to %s", self.bias_paths[0])
 
 
 __all__ = [

@@ -13,6 +13,7 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from sss2bathy.callbacks import CNNTableWriter
 from sss2bathy.eval.cnn_table import (
     cnn_table_csv,
     cnn_table_markdown,
@@ -24,7 +25,7 @@ from sss2bathy.eval.cnn_table import (
 )
 from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
-from sss2bathy.modules.normal_cnn import CNNTableWriter, NormalCNNModule
+from sss2bathy.modules.normal_cnn import NormalCNNModule
 
 ROW = {"mae": 0.05, "rel": 0.051, "rmse": 0.07, "delta1": 80.0, "delta2": 93.0, "delta3": 97.0}
 CONST = {"mae": 0.08, "rel": 0.081, "rmse": 0.1, "delta1": 60.0, "delta2": 85.0, "delta3": 95.0}

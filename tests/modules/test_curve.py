@@ -10,7 +10,7 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, TensorDataset
 
-from sss2bathy.modules.curve import MetricCurve, read_curve, write_curve
+from sss2bathy.callbacks.curve import MetricCurve, read_curve, write_curve
 
 
 class _Toy(pl.LightningModule):

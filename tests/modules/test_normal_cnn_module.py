@@ -13,16 +13,13 @@ from hydra.utils import instantiate
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch.utils.data import DataLoader, Dataset
 
+from sss2bathy.callbacks import CNNTableWriter, render_window_panel
 from sss2bathy.cli._common import config_dir
 from sss2bathy.eval.cnn_table import table_rows_from_metrics, write_cnn_table
 from sss2bathy.eval.paper_numbers import PAPER_LABEL
 from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
-from sss2bathy.modules.normal_cnn import (
-    CNNTableWriter,
-    NormalCNNModule,
-    render_window_panel,
-)
+from sss2bathy.modules.normal_cnn import NormalCNNModule
 
 H, W = 8, 16
 TEST_NAMES = ["synthetic_d1_demo", "synthetic_d2_demo"]

@@ -16,9 +16,10 @@ from hydra import compose, initialize_config_dir
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
 from sss2bathy.losses.siren import height_loss
+from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.siren import Siren
-from sss2bathy.modules.siren import SirenModule, arc_geometry
+from sss2bathy.modules.siren import SirenModule
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -242,18 +243,19 @@ def test_select_best_keeps_the_siren_of_the_lowest_holdout_score():
     altimeter MAE; a better final evaluation is kept as it is."""
     module = SirenModule(Siren(hidden=8, n_layers=3), sensor=None, select_best="holdout_alt_mae")
     first = {k: v.clone() for k, v in module.siren.state_dict().items()}
-    module._track_best({"holdout_alt_mae": 0.3})
+    best = module.best
+    best.track(module.siren, {"holdout_alt_mae": 0.3}, 0)
     with torch.no_grad():
         for p in module.siren.parameters():
             p.add_(1.0)
-    module._track_best({"holdout_alt_mae": 0.5})  # worse: not kept
-    module._track_best({"holdout_alt_mae": float("nan")})  # ignored
-    assert module.best_eval["value"] == 0.3
+    best.track(module.siren, {"holdout_alt_mae": 0.5}, 1)  # worse: not kept
+    best.track(module.siren, {"holdout_alt_mae": float("nan")}, 2)  # ignored
+    assert best.best["value"] == 0.3
     # the final evaluation is better than every earlier one: nothing is restored
-    assert module._restore_best({"holdout_alt_mae": 0.2}) is None
+    assert best.restore(module.siren, {"holdout_alt_mae": 0.2}) is None
     assert not torch.equal(module.siren.state_dict()["out_layer.weight"], first["out_layer.weight"])
     # the final evaluation is worse: the best one's SIREN comes back
-    assert module._restore_best({"holdout_alt_mae": 0.4}) == 0
+    assert best.restore(module.siren, {"holdout_alt_mae": 0.4}) == 0
     for k, v in module.siren.state_dict().items():
         assert torch.equal(v, first[k]), k
     with pytest.raises(ValueError, match="select_best: expected one of"):
@@ -275,6 +277,6 @@ def test_select_best_through_hydra_writes_the_chosen_epoch(tmp_path, tiny_survey
     trainer, model, dm = _fit_from_config(cfg)
     final = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert 0 <= final["final/map_epoch"] <= trainer.current_epoch
-    assert model.best_eval is not None
+    assert model.best.best is not None
     # the written map's held-out score is the best one seen
-    assert final["final/holdout_alt_mae"] <= model.best_eval["value"] + 1e-6
+    assert final["final/holdout_alt_mae"] <= model.best.best["value"] + 1e-6

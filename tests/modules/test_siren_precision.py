@@ -10,10 +10,10 @@ import torch
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation, head_plane_normal_from_gradient
 from sss2bathy.losses.siren import height_loss
+from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.intersection import find_intersections
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.siren import Siren
-from sss2bathy.modules.siren import arc_geometry
 
 BEAM = (math.radians(5.0), math.radians(65.0))
 BOUNDS = (0.0, -20.0, 100.0, 100.0)

@@ -13,10 +13,10 @@ from reliability_helpers import cnn_overrides, compose_run, siren_overrides
 from torch import nn
 from torch.utils.data import DataLoader
 
+from sss2bathy.callbacks.guard import NonFiniteGuard, NonFiniteTrainingError
 from sss2bathy.cli.train import train
 from sss2bathy.data.pings import PingBatches
 from sss2bathy.data.windows import SidescanWindowDataset
-from sss2bathy.modules.guard import NonFiniteGuard, NonFiniteTrainingError
 
 
 class Line(pl.LightningModule):

@@ -1,0 +1,223 @@
+"""Callbacks that write a run's results into its folder.
+
+* :class:`CNNTableWriter`: after testing, the Table-2-style CNN table with constant rows and
+  the bias files (:mod:`sss2bathy.eval.cnn_table`);
+* :class:`SirenMapExport`: at the end of a SIREN fit, the final map (``map.tif``,
+  ``map.npz``, ``metrics.json``, PNGs; :func:`sss2bathy.eval.maps.save_map_outputs`) and the
+  hyper-parameters with the final metrics for the loggers.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pytorch_lightning as pl
+import torch
+
+from sss2bathy.eval.cnn_table import (
+    SIDES,
+    constant_metric_keys,
+    table_rows_from_metrics,
+    write_cnn_bias,
+    write_cnn_table,
+)
+from sss2bathy.eval.maps import save_map_outputs
+from sss2bathy.metrics.normal import LineSideBias, NormalMetrics, masked_mean
+
+log = logging.getLogger(__name__)
+
+
+class CNNTableWriter(pl.Callback):
+    """After testing, writes the Table-2-style CNN table (Markdown + CSV, the paper's numbers
+    beside ours) into ``out_dir`` from the ``test/{name}/...`` metrics, with a
+    constant-prediction row per test set and the per-line, per-side bias files.
+
+    * **Constant prediction**: the mean n_lat over the valid bins of the datamodule's
+      *training* lines (``datamodule.train_set.lines``, never test data), scored with the
+      same metrics on every test batch's valid bins. Its metrics go to the table and, as
+      ``test/{name}/constant/{metric}`` (plus ``.../value``), into the module's
+      ``final_metrics`` (hence the run's ``metrics.json``); ``data/n_train_lines`` and
+      ``data/n_val_lines`` are recorded too. A datamodule without training lines gets no
+      constant row (a warning says so).
+    * **Bias**: ``cnn_bias.csv``, ``cnn_bias_range.csv`` and ``cnn_bias.png``
+      (:func:`sss2bathy.eval.cnn_table.write_cnn_bias`) from the test predictions, which
+      ``test_step`` returns as ``{"pred": ...}``.
+
+    Args:
+        out_dir: the run folder.
+        n_range_bins: groups of bins across track in the bias-against-range panel.
+
+    Under DDP each rank scores its share; the constant metrics are reduced across ranks,
+    the bias files hold rank 0's share.
+    """
+
+    def __init__(self, out_dir: str | Path, n_range_bins: int = 16) -> None:
+        if not isinstance(n_range_bins, int) or isinstance(n_range_bins, bool) or n_range_bins < 1:
+            raise ValueError(f"n_range_bins: expected an integer >= 1, found {n_range_bins!r}")
+        self.out_dir = Path(out_dir)
+        self.n_range_bins = n_range_bins
+        self.paths: tuple[Path, Path] | None = None
+        self.bias_paths: tuple[Path, Path, Path] | None = None
+        self.constant: float | None = None
+        self._const_metrics: dict[int, Any] = {}
+        self._bias: dict[int, Any] = {}
+
+    @staticmethod
+    def training_lines(trainer: pl.Trainer) -> list[Any] | None:
+        """The datamodule's training lines (``train_set.lines``, set up for ``fit`` if the
+        run only tests), or None when the datamodule has none."""
+        dm = getattr(trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "train_set"):
+            return None
+        if dm.train_set is None:
+            log.info("CNN table: setting the training lines up for the constant prediction")
+            dm.setup("fit")
+        lines = getattr(dm.train_set, "lines", None)
+        return list(lines) if lines else None
+
+    def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._const_metrics, self._bias = {}, {}
+        lines = self.training_lines(trainer)
+        if lines is None:
+            self.constant = None
+            log.warning(
+                "CNN table: the datamodule has no training lines (train_set.lines); "
+                "no constant-prediction row"
+            )
+            return
+        self.constant = masked_mean([ln.n_lat for ln in lines], [ln.valid for ln in lines])
+        log.info("CNN table: constant prediction = training mean n_lat %+.5f", self.constant)
+
+    def on_test_batch_end(
+        self,
+        trainer: pl.Trainer,
+        pl_module: pl.LightningModule,
+        outputs: Any,
+        batch: Mapping[str, torch.Tensor],
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
+        if self.constant is not None:
+            if dataloader_idx not in self._const_metrics:
+                self._const_metrics[dataloader_idx] = NormalMetrics().to(pl_module.device)
+            target = batch["n_lat"]
+            const = torch.full_like(target, self.constant)
+            self._const_metrics[dataloader_idx].update(const, target, batch["mask"])
+        if not isinstance(outputs, Mapping) or "pred" not in outputs:
+            raise ValueError(
+                "test_step outputs: expected a dict with the predictions under 'pred' "
+                f"(for the bias files), found {type(outputs).__name__}"
+            )
+        for key in ("line", "side", "bin_start"):
+            if key not in batch:
+                raise ValueError(f"batch: missing key '{key}' (for the bias files)")
+        acc = self._bias.setdefault(dataloader_idx, LineSideBias())
+        acc.update(
+            outputs["pred"], batch["n_lat"], batch["mask"],
+            batch["line"], batch["side"], batch["bin_start"],
+        )  # fmt: skip
+
+    def _line_names(self, trainer: pl.Trainer, idx: int) -> list[str] | None:
+        sets = getattr(getattr(trainer, "datamodule", None), "test_sets", None)
+        if sets is not None and idx < len(sets):
+            names = getattr(sets[idx], "line_names", None)
+            return list(names) if names is not None else None
+        return None
+
+    def _bias_rows(self, pl_module: pl.LightningModule) -> tuple[list, list]:
+        line_rows, range_rows = [], []
+        for idx in sorted(self._bias):
+            name = pl_module.test_set_name(idx) or "test"
+            names = self._line_names(pl_module.trainer, idx)
+            acc = self._bias[idx]
+            for r in acc.line_side_rows():
+                line = names[r["line"]] if names else f"line_{r['line']}"
+                line_rows.append({**r, "dataset": name, "line": line, "side": SIDES[r["side"]]})
+            for r in acc.range_rows(self.n_range_bins):
+                range_rows.append({**r, "dataset": name, "side": SIDES[r["side"]]})
+        return line_rows, range_rows
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        # computed on every rank: the metrics' compute() reduces across DDP processes
+        constant_rows = {}
+        for idx in sorted(self._const_metrics):
+            name = pl_module.test_set_name(idx) or "test"
+            row = {k: float(v) for k, v in self._const_metrics[idx].compute().items()}
+            constant_rows[name] = {**row, "value": float(self.constant)}
+        if not trainer.is_global_zero:
+            return
+        final = getattr(pl_module, "final_metrics", None)
+        if isinstance(final, dict):
+            for name, row in constant_rows.items():
+                final.update(constant_metric_keys(name, row))
+            dm = getattr(trainer, "datamodule", None)
+            for key in ("train_lines", "val_lines"):
+                if getattr(dm, key, None):
+                    final[f"data/n_{key}"] = float(len(getattr(dm, key)))
+        rows = table_rows_from_metrics(trainer.callback_metrics)
+        if not rows:
+            log.warning("CNN table: no complete test/<name>/<metric> set was logged; not written")
+            return
+        if any(not math.isfinite(v) for row in rows.values() for v in row.values()):
+            log.warning("CNN table: some test metrics are not finite (no valid pixel?)")
+        constant_rows = {k: v for k, v in constant_rows.items() if k in rows}
+        self.paths = write_cnn_table(rows, self.out_dir, constant_rows or None)
+        log.info("CNN table written to %s", self.paths[0])
+        line_rows, range_rows = self._bias_rows(pl_module)
+        if line_rows:
+            self.bias_paths = write_cnn_bias(line_rows, range_rows, self.out_dir)
+            log.info("CNN bias per line and side written to %s", self.bias_paths[0])
+
+
+class SirenMapExport(pl.Callback):
+    """At the end of a SIREN fit (rank 0): the module's final map
+    (:meth:`~sss2bathy.modules.siren.SirenModule.final_map`) written by
+    :func:`~sss2bathy.eval.maps.save_map_outputs` into ``out_dir``, and the module's
+    ``hparams_for_log()`` logged with the final metrics to every logger.
+
+    Args:
+        out_dir: the folder; ``None`` = the first logger's ``save_dir`` (the Hydra run
+            folder), else the trainer's ``default_root_dir``.
+    """
+
+    def __init__(self, out_dir: str | Path | None = None) -> None:
+        self.out_dir = Path(out_dir) if out_dir else None
+        self.paths: dict[str, Path] | None = None
+
+    def folder(self, trainer: pl.Trainer) -> Path:
+        if self.out_dir is not None:
+            return self.out_dir
+        logger = trainer.logger
+        if logger is not None and getattr(logger, "save_dir", None):
+            return Path(logger.save_dir)
+        return Path(trainer.default_root_dir)
+
+    def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if not trainer.is_global_zero:
+            return
+        final = pl_module.final_map()
+        summary = {"final/" + k: v for k, v in final.metrics.items() if isinstance(v, int | float)}
+        summary["epochs"] = int(trainer.current_epoch)
+        summary["final/map_epoch"] = final.map_epoch
+        inputs = pl_module.inputs
+        alt = inputs.altimeter
+        self.paths = save_map_outputs(
+            self.folder(trainer),
+            final.pred,
+            final.truth,
+            final.region,
+            summary,
+            pl_module.map_title(),
+            origin=inputs.origin,
+            altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
+        )
+        log.info("SIREN map written to %s (%s)", self.paths["map_tif"], dict(final.metrics))
+        for logger in trainer.loggers:
+            logger.log_hyperparams(pl_module.hparams_for_log(), metrics=summary)
+
+
+__all__ = ["CNNTableWriter", "SirenMapExport"]

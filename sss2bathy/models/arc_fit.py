@@ -1,0 +1,140 @@
+"""Where a batch's isotemporal arcs cross the SIREN, and the SIREN's normals there
+(paper eq. 10-12, then eq. 1-3): the geometry step of every sidescan SIREN fit.
+
+Plain torch (no Lightning): :class:`~sss2bathy.modules.siren.SirenModule` calls
+:func:`arc_geometry` once per training step, and the Lambertian waterfall figure and the
+benchmarks call it through the module's ``sidescan_geometry``.
+
+1. for every bin the sensor model can use, the depression angle where its arc crosses the
+   SIREN (:func:`~sss2bathy.models.intersection.find_intersections`, under ``no_grad``),
+   warm-started from the bin's previous solution (``theta_cache``, NaN = none yet,
+   +inf = no crossing last time);
+2. at the valid crossings, the SIREN's height gradient *with a graph*
+   (:meth:`~sss2bathy.models.siren.Siren.height_and_gradient`) and the head-plane normal
+   (:func:`~sss2bathy.geometry.head_plane_normal_from_gradient`, eq. 1-3), packed into an
+   :class:`~sss2bathy.models.sensors.ArcGeometry` for the sensor model's loss.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
+from sss2bathy.models.intersection import SOLVERS, find_intersections
+from sss2bathy.models.sensors import ArcGeometry
+from sss2bathy.models.siren import Siren, autocast_disabled
+
+# finder settings of the SIREN fits (model.finder; ``warm_bracket_deg`` in degrees)
+FINDER_DEFAULTS: dict[str, Any] = {
+    "solver": "secant",
+    "max_iter": None,
+    "tol_m": 1e-3,
+    "gd_step": 0.01,
+    "warm_start": True,
+    "n_scan": 16,
+    "scan_max_slope": 1.0,
+    "warm_bracket_deg": 0.5,
+    "chunk": 8192,
+}
+
+
+def finder_config(finder: Mapping[str, Any] | None) -> dict[str, Any]:
+    """:data:`FINDER_DEFAULTS` updated by ``finder``; unknown keys or solvers raise
+    ``ValueError`` naming ``finder.<key>``."""
+    cfg = dict(FINDER_DEFAULTS)
+    given = dict(finder or {})
+    unknown = sorted(set(given) - set(cfg))
+    if unknown:
+        raise ValueError(f"finder: expected keys among {sorted(cfg)}, found unknown {unknown}")
+    cfg.update(given)
+    if cfg["solver"] not in SOLVERS:
+        raise ValueError(f"finder.solver: expected one of {SOLVERS}, found {cfg['solver']!r}")
+    return cfg
+
+
+def arc_geometry(
+    siren: Siren,
+    batch: dict[str, torch.Tensor],
+    use: torch.Tensor,
+    theta_limits: tuple[float, float],
+    finder: Mapping[str, Any],
+    theta_cache: torch.Tensor | None = None,
+) -> tuple[ArcGeometry, dict[str, torch.Tensor]]:
+    """Crossings of a batch's bins with the SIREN, and the SIREN's normals there.
+
+    Args:
+        siren: the bathymetry.
+        batch: ping batch (``position``, ``rotation``, ``range_m``, ``line``, ``index``).
+        use: ``(P, 2, B)`` bool, the bins to use (the sensor model's ``bin_mask``).
+        theta_limits: beam limits (rad).
+        finder: finder settings (:data:`FINDER_DEFAULTS` keys; missing ones take the default).
+        theta_cache: ``(n_pings, 2, B)`` per-bin warm-start angles indexed by the batch's
+            ``index`` (NaN = none yet, +inf = no crossing last time), updated in place;
+            ``None`` = cold solves.
+
+    Returns:
+        ``(geo, stats)``: the valid bins' :class:`ArcGeometry` (gradient and normals with
+        graph; ``geo.ping`` indexes the batch) and finder statistics (``valid_fraction``,
+        ``finder_iters`` = mean solver evaluations per bin).
+    """
+    finder = finder_config(finder)
+    pi, si, bi = use.nonzero(as_tuple=True)
+    sonar, rot = batch["position"][pi], batch["rotation"][pi]
+    range_m = batch["range_m"][bi]
+    warm = finder["warm_start"] and theta_cache is not None
+    cache_idx = (batch["index"][pi], si, bi)
+    # Geometry in float32 even under an enclosing autocast (bf16 would move crossings and
+    # normals by centimetres); the SIREN picks its own precision (Siren.precision).
+    with autocast_disabled(sonar.device):
+        theta, valid, n_iter = find_intersections(
+            siren,
+            sonar,
+            rot,
+            range_m,
+            si,
+            theta_limits,
+            solver=finder["solver"],
+            theta0=theta_cache[cache_idx] if warm else None,
+            max_iter=finder["max_iter"],
+            tol_m=finder["tol_m"],
+            gd_step=finder["gd_step"],
+            n_scan=finder["n_scan"],
+            scan_max_slope=finder["scan_max_slope"],
+            warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
+            chunk=finder["chunk"],
+        )
+        if warm:
+            # +inf marks "no crossing": next time only the beam's ends are checked
+            theta_cache[cache_idx] = torch.where(valid, theta, torch.inf).to(theta_cache.dtype)
+        v = valid.nonzero().squeeze(-1)
+        pi, si, bi = pi[v], si[v], bi[v]
+        sonar, rot, range_m, theta = sonar[v], rot[v], range_m[v], theta[v]
+        points = arc_point(sonar, rot, range_m, theta, si)
+    # the SIREN blocks its points itself (Siren.chunk: cache-sized on CPU)
+    grad = siren.height_and_gradient(points[:, :2])[1]
+    with autocast_disabled(sonar.device):
+        n_lat, n_up = head_plane_normal_from_gradient(grad[:, 0], grad[:, 1], rot, si)
+    geo = ArcGeometry(
+        points=points,
+        theta=theta,
+        range_m=range_m,
+        side=si,
+        sonar=sonar,
+        rotation=rot,
+        grad=grad,
+        n_lat=n_lat,
+        n_up=n_up,
+        ping=pi,
+        bin=bi,
+        line=batch["line"][pi],
+    )
+    n_bins = max(int(valid.numel()), 1)
+    stats = {"valid_fraction": valid.sum() / n_bins, "finder_iters": n_iter.sum() / n_bins}
+    return geo, stats
+
+
+__all__ = ["FINDER_DEFAULTS", "arc_geometry", "finder_config"]

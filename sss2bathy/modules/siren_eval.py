@@ -1,0 +1,155 @@
+"""The map evaluation of a SIREN fit: the SIREN sampled on a grid and scored (plain
+functions and values, no Lightning).
+
+* :class:`MapScorer` fixes, once the survey is known, the evaluation grid (the MBES grid,
+  or ``eval_cell_m`` cells over the bounds), the *surveyed area* (cells within the swath
+  half-width of a sonar position of the lines used) and the held-out altimeter points; its
+  :meth:`~MapScorer.evaluate` returns a :class:`MapEvaluation`.
+* :class:`BestSnapshot` keeps a copy of the SIREN at the evaluation with the lowest
+  ``select_best`` metric, for the final map.
+
+Metrics: ``mae``, ``std``, ``grad_cs``, ``n_cells`` against the MBES grid
+(:func:`sss2bathy.eval.maps.map_metrics`) and, with held-out altimeter points,
+``holdout_alt_mae``, ``holdout_interp_mae``, ``holdout_ratio``, ``holdout_n``
+(:mod:`sss2bathy.data.holdout`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from sss2bathy.data.holdout import AltimeterSplit, holdout_mae
+from sss2bathy.eval.maps import grid_over_bounds, map_metrics, siren_to_grid, track_region_mask
+from sss2bathy.survey import BathyGrid
+
+# metrics ``select_best`` may choose the final map by (lower is better; no MBES needed)
+SELECT_BEST = ("holdout_alt_mae",)
+
+
+@dataclass(frozen=True)
+class MapEvaluation:
+    """One evaluation of the SIREN's map (read by the map callbacks, never changed).
+
+    Attributes:
+        pred: the SIREN on the evaluation grid.
+        metrics: its scores (module docstring).
+        epoch: the epoch it was made at (0-based).
+        truth: the MBES grid, or None.
+        region: ``(ny, nx)`` bool, the scored area.
+        map_epoch: the epoch of the SIREN the map shows (the final map with ``select_best``
+            may show an earlier one).
+    """
+
+    pred: BathyGrid
+    metrics: Mapping[str, float]
+    epoch: int
+    truth: BathyGrid | None
+    region: np.ndarray | None
+    map_epoch: int | None = None
+
+
+@dataclass
+class MapScorer:
+    """Evaluation grid, scored area and held-out points of one survey (module docstring)."""
+
+    like: BathyGrid
+    truth: BathyGrid | None
+    region: np.ndarray
+    holdout_points: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
+    holdout_interp_mae: float | None = None
+
+    @classmethod
+    def for_survey(
+        cls,
+        bounds: tuple[float, float, float, float],
+        grid: BathyGrid | None,
+        track_xy: np.ndarray,
+        radius_m: float,
+        eval_cell_m: float,
+        holdout: AltimeterSplit | None = None,
+    ) -> MapScorer:
+        like = grid if grid is not None else grid_over_bounds(bounds, eval_cell_m)
+        scorer = cls(like, grid, track_region_mask(like, track_xy, radius_m))
+        if holdout is not None and holdout.n_held > 0:
+            scorer.holdout_points = torch.from_numpy(np.asarray(holdout.held, np.float32))
+            scorer.holdout_interp_mae = float(holdout.interp_mae)
+        return scorer
+
+    def holdout_metrics(self, siren: torch.nn.Module) -> dict[str, float]:
+        """``holdout_alt_mae`` (the SIREN at the held-out altimeter points, m),
+        ``holdout_interp_mae`` (along-track interpolation of the kept points there, m),
+        ``holdout_ratio`` (their ratio; < 1: the fit beats interpolation) and
+        ``holdout_n``; empty without held-out points."""
+        if not self.holdout_points.numel() or self.holdout_interp_mae is None:
+            return {}
+        device = next(iter(siren.parameters())).device
+        pts = self.holdout_points.to(device)
+        with torch.no_grad():
+            z = torch.cat([siren.height(part) for part in pts[:, :2].split(65536)])
+        alt_mae = holdout_mae(z.float().cpu().numpy(), pts[:, 2].cpu().numpy())
+        interp = self.holdout_interp_mae
+        return {
+            "holdout_alt_mae": alt_mae,
+            "holdout_interp_mae": interp,
+            "holdout_ratio": alt_mae / interp if interp > 0 else float("nan"),
+            "holdout_n": int(pts.shape[0]),
+        }
+
+    def evaluate(self, siren: torch.nn.Module, epoch: int) -> MapEvaluation:
+        """The SIREN on the evaluation grid and its metrics."""
+        pred = siren_to_grid(siren, self.like)
+        metrics = map_metrics(pred, self.truth, self.region) if self.truth else {}
+        metrics.update(self.holdout_metrics(siren))
+        return MapEvaluation(pred, metrics, int(epoch), self.truth, self.region)
+
+
+def finite_metrics(metrics: Mapping[str, Any], prefix: str = "final/") -> dict[str, float]:
+    """The finite numeric entries of ``metrics`` as floats, keys prefixed."""
+    return {
+        f"{prefix}{k}": float(v)
+        for k, v in metrics.items()
+        if isinstance(v, int | float) and math.isfinite(v)
+    }
+
+
+class BestSnapshot:
+    """A copy of the SIREN at the evaluation with the lowest ``metric`` (``None``: off)."""
+
+    def __init__(self, metric: str | None) -> None:
+        if metric is not None and metric not in SELECT_BEST:
+            raise ValueError(
+                f"select_best: expected one of {SELECT_BEST} or None, found {metric!r}"
+            )
+        self.metric = metric
+        self.best: dict[str, Any] | None = None
+
+    def track(self, siren: torch.nn.Module, metrics: Mapping[str, float], epoch: int) -> None:
+        """Keep a copy of ``siren`` if this evaluation's metric is the lowest so far."""
+        if self.metric is None:
+            return
+        value = metrics.get(self.metric)
+        if value is None or not math.isfinite(value):
+            return
+        if self.best is None or value < self.best["value"]:
+            state = {k: v.detach().clone() for k, v in siren.state_dict().items()}
+            self.best = {"value": float(value), "epoch": int(epoch), "state": state}
+
+    def restore(self, siren: torch.nn.Module, metrics: Mapping[str, float]) -> int | None:
+        """Load the best copy into ``siren`` when it beats ``metrics`` (the final
+        evaluation's); its epoch, else None."""
+        if self.metric is None or self.best is None:
+            return None
+        value = metrics.get(self.metric)
+        if value is not None and math.isfinite(value) and value <= self.best["value"]:
+            return None
+        siren.load_state_dict(self.best["state"])
+        return int(self.best["epoch"])
+
+
+__all__ = ["SELECT_BEST", "BestSnapshot", "MapEvaluation", "MapScorer", "finite_metrics"]
