@@ -86,7 +86,7 @@ def rotation_to_attitude(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, t
 def check_rotations(R: torch.Tensor, atol: float = 1e-4) -> torch.Tensor:
     """Boolean ``(...)`` mask of matrices that are proper rotations within ``atol``."""
     R = torch.as_tensor(R).double()
-    eye = torch.eye(3, dtype=R.dtype)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
     ortho = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-1, -2)) <= atol
     proper = (torch.linalg.det(R) - 1.0).abs() <= atol
     return ortho & proper & torch.isfinite(R).all(dim=(-1, -2))
