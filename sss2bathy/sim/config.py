@@ -186,7 +186,8 @@ class GridTerrainParams:
     """A real bathymetry grid as the terrain (``data.survey.terrain.grid``).
 
     The survey's local frame has its origin at the grid's SW cell centre and the grid's CRS,
-    so the outputs are georeferenced where the grid is. ``spike_threshold_m``: cells more
+    so the outputs are georeferenced where the grid is; ``cell_m`` resamples it (None: its
+    own cell; required for XYZ points). ``spike_threshold_m``: cells more
     than this from the median of their ``spike_window_cells`` square are removed (None: no
     filter). Holes (no-data and removed spikes) of at most ``fill_max_area_m2`` that do not
     touch the grid's edge are filled for rendering only (flagged); the others are no seabed
@@ -199,6 +200,7 @@ class GridTerrainParams:
 
     path: str
     band: int = 1
+    cell_m: float | None = None
     source_crs: str | None = None
     z_positive: str = "up"
     spike_threshold_m: float | None = None
@@ -231,7 +233,11 @@ def _existing_file(path: str, value: Any, what: str, suffixes: Sequence[str]) ->
 
 def _read_grid_terrain(r: _Reader, grid_path: str) -> GridTerrainParams:
     path = _existing_file(
-        grid_path, r.raw("grid"), "bathymetry grid (GeoTIFF, BAG, ESRI ASCII, XYZ)", GRID_SUFFIXES
+        grid_path,
+        r.raw("grid"),
+        "bathymetry grid (GeoTIFF, BAG, ESRI ASCII, XYZ; set data.survey.terrain.grid=PATH, or "
+        "SSS2BATHY_REALDATA=FOLDER for the presets)",
+        GRID_SUFFIXES,
     )
     spikes = r.section("spike_filter")
     enabled = spikes.raw("enabled")
@@ -258,6 +264,7 @@ def _read_grid_terrain(r: _Reader, grid_path: str) -> GridTerrainParams:
     return GridTerrainParams(
         path=path,
         band=r.integer("grid_band", 1, ge=1),
+        cell_m=r.optional_number("grid_cell_m", None, gt=0.0),
         source_crs=crs,
         z_positive=r.choice("grid_z_positive", "up", ("up", "down")),
         spike_threshold_m=threshold if enabled else None,
@@ -301,7 +308,7 @@ _PROCEDURAL_ONLY = (
 )  # fmt: skip
 #: grid-only terrain keys: refused without ``grid``
 _GRID_ONLY = (
-    "grid_band", "grid_crs", "grid_z_positive", "spike_filter", "fill_max_area_m2", "detail",
+    "grid_band", "grid_cell_m", "grid_crs", "grid_z_positive", "spike_filter", "fill_max_area_m2", "detail",
     "detail_cell_m", "materials_raster", "materials_kind",
 )  # fmt: skip
 
@@ -815,6 +822,8 @@ class SyntheticSurveyConfig:
                 d[section].pop(key)
         grid = d["terrain"].get("grid")
         if grid is not None:
+            if grid.get("cell_m") is None:  # added later; its own cell: the key as before
+                grid.pop("cell_m")
             for key in ("path", "materials_raster"):
                 if grid[key] is not None:
                     grid[key] = {"name": Path(grid[key]).name, "sha256": file_digest(grid[key])}

@@ -525,7 +525,11 @@ def read_grid_source(params: GridTerrainParams) -> GridSource:
     from sss2bathy.io.grids import read_grid, spike_mask
 
     grid = read_grid(
-        params.path, band=params.band, source_crs=params.source_crs, z_positive=params.z_positive
+        params.path,
+        params.cell_m,
+        band=params.band,
+        source_crs=params.source_crs,
+        z_positive=params.z_positive,
     )
     heights = np.array(grid.heights, dtype=np.float64)
     if min(heights.shape) < 8:

@@ -367,6 +367,7 @@ def test_real_1m_grid_reads_and_plans_inside_its_footprint():
         assert terrain.seabed[iy, ix].all()
 
 
+@pytest.mark.slow  # ~30-65 s on a shared 2-core CPU
 @needs_realdata
 def test_tiny_end_to_end_over_a_cropped_real_grid_is_scored_against_it(tmp_path, monkeypatch):
     """prepare + SIREN-GT-N2d at tiny scale over a 90 x 70 m crop of the real grid."""
@@ -412,3 +413,29 @@ def test_tiny_end_to_end_over_a_cropped_real_grid_is_scored_against_it(tmp_path,
     mapped = read_grid(run / "map.tif")
     assert mapped.crs == "EPSG:32751"
     assert crop.x0 - 1 <= mapped.x0 <= crop.x0 + 90
+
+
+def test_xyz_depth_points_give_the_same_terrain_as_the_geotiff(tmp_path):
+    cfg = _tiny()
+    heights = -8.0 - 0.05 * np.add.outer(np.arange(41), np.arange(61)) * 0.5
+    tif = _write(tmp_path, "slope.tif", heights)
+    yy, xx = np.meshgrid(np.arange(41) * 0.5 + N0, np.arange(61) * 0.5 + E0, indexing="ij")
+    xyz = tmp_path / "slope.xyz"
+    np.savetxt(xyz, np.column_stack([xx.ravel(), yy.ravel(), -heights.ravel()]), fmt="%.3f")
+    from_tif, _ = grid_terrain(
+        *_terrain_params(_as_grid_config(cfg, tif)), np.random.default_rng(0)
+    )
+    points = _as_grid_config(cfg, str(xyz), grid_cell_m=0.5, grid_crs=CRS, grid_z_positive="down")
+    from_xyz, source = grid_terrain(*_terrain_params(points), np.random.default_rng(0))
+    assert source.origin["crs"] == CRS
+    assert source.origin["easting"] == pytest.approx(E0) and source.origin[
+        "northing"
+    ] == pytest.approx(N0)
+    np.testing.assert_allclose(from_xyz.heights, from_tif.heights, atol=1e-3)
+    with pytest.raises(ValueError, match="cell_size"):
+        grid_terrain(*_terrain_params(_as_grid_config(cfg, str(xyz))), np.random.default_rng(0))
+
+
+def _terrain_params(cfg: dict):
+    config = SyntheticSurveyConfig.from_mapping(cfg)
+    return config.terrain, config.materials
