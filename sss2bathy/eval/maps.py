@@ -180,29 +180,41 @@ def gradient_hsv(dzdx: np.ndarray, dzdy: np.ndarray, vmax: float | None = None) 
     return hsv_to_rgb(hsv).astype(np.float32)
 
 
-def render_map(
+HEIGHT_LABEL = "seabed height z (m, up; z = -depth)"
+ERROR_LABEL = "signed error map - MBES (m)"
+
+
+def map_figure(
     grid_or_array: BathyGrid | np.ndarray,
-    path: str | Path,
     title: str,
     cmap: str = "viridis",
     symmetric: bool = False,
-    label: str = "height (m)",
+    label: str = HEIGHT_LABEL,
     extent: Sequence[float] | None = None,
     origin: Mapping[str, Any] | None = None,
-) -> Path:
-    """Write a PNG of a map (north up).
+    vmax: float | None = None,
+    figsize: tuple[float, float] = (7.5, 5.5),
+) -> Any:
+    """A map as a matplotlib ``Figure`` a surveyor reads without help (north up).
+
+    A scalar map gets a colour bar labelled ``label`` (its unit); an RGB gradient picture
+    (:func:`gradient_hsv`) gets the HSV colour-wheel key beside it. Axes are projected
+    easting/northing when ``origin`` is known (the CRS named), else local metres; a north
+    arrow and "North up" sit on the map. Save it with
+    :func:`sss2bathy.utils.atomic.save_figure`, log it with TensorBoard's ``add_figure`` or
+    turn it into pixels with :func:`figure_to_rgb`.
 
     Args:
         grid_or_array: a :class:`BathyGrid`, a ``(ny, nx)`` array (row 0 south) or an
-            ``(ny, nx, 3)`` RGB image (e.g. :func:`gradient_hsv`).
-        path: output ``.png``.
-        title: figure title.
-        cmap: colour map of scalar maps.
-        symmetric: colour limits ``+-max|value|`` (signed errors).
-        label: colour-bar label of scalar maps.
-        extent: ``(xmin, xmax, ymin, ymax)`` axes in metres (taken from a grid), local frame.
-        origin: the survey origin ``{"crs", "easting", "northing"}``: axes in projected
-            easting/northing (the CRS named); without it the axes say "local".
+            ``(ny, nx, 3)`` RGB gradient image.
+        title: the figure title; name the experiment and survey (e.g.
+            ``"SIREN-GT-N2d on synthetic_d1: bathymetry"``).
+        cmap, symmetric, label: colour map, ``+-max|value|`` limits (signed errors) and
+            colour-bar label of scalar maps.
+        extent: ``(xmin, xmax, ymin, ymax)`` in local metres (taken from a grid).
+        origin: the survey origin ``{"crs", "easting", "northing"}``.
+        vmax: gradient norm (m/m) at full brightness of an RGB gradient image, for its key.
+        figsize: inches.
     """
     import matplotlib
 
@@ -213,13 +225,18 @@ def render_map(
         data, extent = grid_or_array.heights, _extent(grid_or_array)
     else:
         data = np.asarray(grid_or_array)
+    if data.ndim not in (2, 3) or (data.ndim == 3 and data.shape[-1] != 3):
+        raise ValueError(f"grid_or_array: expected (ny, nx) or (ny, nx, 3), found {data.shape}")
     if extent is not None and origin is not None:
         e, n = float(origin.get("easting", 0.0)), float(origin.get("northing", 0.0))
         x0, x1, y0, y1 = extent
         extent = (x0 + e, x1 + e, y0 + n, y1 + n)
-    if data.ndim not in (2, 3) or (data.ndim == 3 and data.shape[-1] != 3):
-        raise ValueError(f"grid_or_array: expected (ny, nx) or (ny, nx, 3), found {data.shape}")
-    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    if data.ndim == 2:
+        fig, ax = plt.subplots(figsize=figsize)
+    else:  # the colour-wheel key in a column of its own
+        fig, (ax, key) = plt.subplots(
+            1, 2, figsize=figsize, gridspec_kw={"width_ratios": [4.0, 1.4]}
+        )
     kw: dict[str, Any] = {"origin": "lower", "extent": extent, "interpolation": "nearest"}
     if data.ndim == 2:
         finite = data[np.isfinite(data)]
@@ -227,20 +244,186 @@ def render_map(
             lim = float(np.percentile(np.abs(finite), 99.5)) or 1.0
             kw.update(vmin=-lim, vmax=lim)
         im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, **kw)
-        fig.colorbar(im, ax=ax, label=label)
+        fig.colorbar(im, ax=ax, label=label, shrink=0.9)
     else:
         ax.imshow(data, **kw)
-    ax.set_title(title)
+        hsv_wheel_key(key, vmax)
+    ax.set_title(title, fontsize=10)
     if extent is None:
-        ax.set_xlabel("column")
-        ax.set_ylabel("row")
+        ax.set_xlabel("column (east)")
+        ax.set_ylabel("row (north)")
     else:
         xlabel, ylabel = axis_labels(origin)
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel(ylabel, fontsize=8)
         _plain_ticks(ax)
+    north_arrow(ax)
     fig.tight_layout()
+    return fig
+
+
+def render_map(
+    grid_or_array: BathyGrid | np.ndarray,
+    path: str | Path,
+    title: str,
+    cmap: str = "viridis",
+    symmetric: bool = False,
+    label: str = HEIGHT_LABEL,
+    extent: Sequence[float] | None = None,
+    origin: Mapping[str, Any] | None = None,
+    vmax: float | None = None,
+) -> Path:
+    """Write :func:`map_figure` of a map as a PNG at ``path`` (same arguments)."""
+    fig = map_figure(grid_or_array, title, cmap, symmetric, label, extent, origin, vmax)
     return save_figure(fig, path, dpi=110)
+
+
+def hsv_wheel_key(ax: Any, vmax: float | None = None, n: int = 129) -> None:
+    """Draw the key of :func:`gradient_hsv` pictures into ``ax``: a colour wheel whose hue is
+    the upslope direction (the compass point the seabed rises towards; north up) and whose
+    brightness is the slope ``|grad z|``, from black (flat) at the centre to full at the rim
+    (``vmax`` m/m, said under the wheel when given)."""
+    g = np.linspace(-1.0, 1.0, n)
+    gx, gy = np.meshgrid(g, g)  # gx: dz/dx (east), gy: dz/dy (north)
+    rgb = gradient_hsv(np.where(np.hypot(gx, gy) <= 1, gx, np.nan), gy, vmax=1.0)
+    outside = np.hypot(gx, gy) > 1
+    rgba = np.concatenate([rgb, (~outside)[..., None].astype(np.float32)], axis=-1)
+    ax.imshow(rgba, origin="lower", extent=(-1, 1, -1, 1), interpolation="bilinear")
+    for text, (x, y) in {"N": (0, 1.22), "E": (1.22, 0), "S": (0, -1.22), "W": (-1.22, 0)}.items():
+        ax.text(x, y, text, ha="center", va="center", fontsize=7, fontweight="bold")
+    ax.set_xlim(-1.45, 1.45)
+    ax.set_ylim(-1.45, 1.45)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    rim = f"rim: |grad z| >= {vmax:.3g} m/m" if vmax is not None else "rim: the steepest 1 %"
+    ax.set_title("gradient key\nhue: upslope direction", fontsize=7)
+    ax.text(
+        0, -1.75, f"brightness: slope\n(centre: flat; {rim})", ha="center", va="top", fontsize=6
+    )
+
+
+def north_arrow(ax: Any) -> None:
+    """A north arrow and "North up" on a map's axes (top right; readable on dark and light)."""
+    from matplotlib import patheffects
+
+    halo = [patheffects.withStroke(linewidth=3, foreground="white")]
+    ax.annotate(
+        "",
+        xy=(0.95, 0.97),
+        xytext=(0.95, 0.85),
+        xycoords="axes fraction",
+        arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1.5, "path_effects": halo},
+    )
+    ax.text(
+        0.95,
+        0.81,
+        "N",
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        fontsize=9,
+        fontweight="bold",
+        path_effects=halo,
+    )
+    ax.text(
+        0.02,
+        0.02,
+        "North up",
+        transform=ax.transAxes,
+        fontsize=6,
+        bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+    )
+
+
+def waterfall_figure(
+    intensity: np.ndarray,
+    n_lat: np.ndarray,
+    n_lat_true: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    title: str = "",
+    normal_limit: float | None = None,
+    figsize: tuple[float, float] | None = None,
+) -> Any:
+    """A sidescan waterfall with its lateral normal component ``n_lat`` beside it (and the
+    ground truth's with ``n_lat_true``): a matplotlib ``Figure``, pings upward, colour bars
+    labelled.
+
+    Args:
+        intensity: ``(pings, bins)`` sidescan intensity (any scale; shown 1-99 % stretched).
+        n_lat: ``(pings, bins)`` estimated n_lat (unitless, the normal's across-track
+            component in the head plane; ``RdBu_r`` over ``+-normal_limit``).
+        n_lat_true: the same from the MBES (draped), or None.
+        mask: ``(pings, bins)`` bool, True = valid bin; invalid bins are grey.
+        title: names the run and line (e.g. ``"CNN on synthetic_d1, line T03"``).
+        normal_limit: n_lat colour range; default the 98th percentile of ``|n_lat|``.
+        figsize: inches; default scales with the number of panels.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    inten = np.asarray(intensity, dtype=np.float64)
+    if inten.ndim != 2:
+        raise ValueError(f"intensity: expected a (pings, bins) array, found {inten.shape}")
+    panels = [("n_lat (estimated)", np.asarray(n_lat, dtype=np.float64))]
+    if n_lat_true is not None:
+        panels.append(("n_lat (MBES, draped)", np.asarray(n_lat_true, dtype=np.float64)))
+    for name, arr in [("n_lat", panels[0][1])] + (
+        [("n_lat_true", panels[1][1])] if n_lat_true is not None else []
+    ):
+        if arr.shape != inten.shape:
+            raise ValueError(
+                f"{name}: expected the shape of intensity {inten.shape}, found {arr.shape}"
+            )
+    valid = np.ones(inten.shape, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if valid.shape != inten.shape:
+        raise ValueError(
+            f"mask: expected the shape of intensity {inten.shape}, found {valid.shape}"
+        )
+    if normal_limit is None:
+        ref = np.abs(panels[-1][1][valid & np.isfinite(panels[-1][1])])
+        normal_limit = max(0.05, float(np.percentile(ref, 98))) if ref.size else 0.5
+    shown = inten[valid & np.isfinite(inten)]
+    lo, hi = np.percentile(shown, [1, 99]) if shown.size else (0.0, 1.0)
+    ncol = 1 + len(panels)
+    fig, axes = plt.subplots(1, ncol, figsize=figsize or (3.6 * ncol, 5.0), squeeze=False)
+    axes = axes[0]
+    kw: dict[str, Any] = {"origin": "lower", "aspect": "auto", "interpolation": "nearest"}
+    cmap_gray = matplotlib.colormaps["gray"].with_extremes(bad="0.6")
+    im = axes[0].imshow(np.ma.masked_where(~valid, inten), cmap=cmap_gray, vmin=lo, vmax=hi, **kw)
+    fig.colorbar(im, ax=axes[0], label="intensity (1-99 % stretch)", shrink=0.85)
+    axes[0].set_title("sidescan waterfall", fontsize=9)
+    cmap_n = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.6")
+    for ax, (name, arr) in zip(axes[1:], panels, strict=True):
+        im = ax.imshow(
+            np.ma.masked_where(~valid, arr),
+            cmap=cmap_n,
+            vmin=-normal_limit,
+            vmax=normal_limit,
+            **kw,
+        )
+        fig.colorbar(im, ax=ax, label="n_lat (unitless)", shrink=0.85)
+        ax.set_title(name, fontsize=9)
+    for ax in axes:
+        ax.set_xlabel("bin (port | starboard)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0].set_ylabel("ping (time upward)", fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def figure_to_rgb(fig: Any, close: bool = True) -> np.ndarray:
+    """``(H, W, 3)`` uint8 pixels of a matplotlib figure (for image loggers); closes it."""
+    import matplotlib.pyplot as plt
+
+    fig.canvas.draw()
+    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    if close:
+        plt.close(fig)
+    return rgb
 
 
 def axis_labels(origin: Mapping[str, Any] | None) -> tuple[str, str]:
@@ -364,37 +547,45 @@ def save_map_outputs(
     vmax = None
     if true is not None:
         tx, ty = map_gradient(true.heights, true.cell_size)
-        norm = np.hypot(tx, ty)
-        vmax = float(np.nanpercentile(norm, 99)) if np.isfinite(norm).any() else None
+        vmax = _gradient_vmax(tx, ty)
         paths["gt_gradient_png"] = render_map(
             gradient_hsv(tx, ty, vmax),
             out / "gt_gradient_hsv.png",
-            "MBES: gradient (HSV)",
+            f"MBES (ground truth) beside {title}: gradient (HSV)",
             extent=_extent(true),
             origin=origin,
+            vmax=vmax,
         )
         paths["error_png"] = render_map(
             error_map(pred, true, region),
             out / "error.png",
-            f"{title}: signed error",
+            f"{title}: signed error against the MBES",
             cmap="RdBu_r",
             symmetric=True,
-            label="error (m)",
+            label=ERROR_LABEL,
             extent=_extent(true),
             origin=origin,
         )
     px, py = map_gradient(shown.heights, pred.cell_size)
+    vmax = vmax if vmax is not None else _gradient_vmax(px, py)
     paths["gradient_png"] = render_map(
         gradient_hsv(px, py, vmax),
         out / "gradient_hsv.png",
         f"{title}: gradient (HSV)",
         extent=_extent(pred),
         origin=origin,
+        vmax=vmax,
     )
     if metrics is not None:
         paths["metrics"] = out / "metrics.json"
         atomic_write_text(paths["metrics"], json.dumps(metrics, indent=2, sort_keys=True))
     return paths
+
+
+def _gradient_vmax(dzdx: np.ndarray, dzdy: np.ndarray) -> float | None:
+    """The slope (m/m) of full brightness in :func:`gradient_hsv`: the 99th percentile."""
+    norm = np.hypot(dzdx, dzdy)
+    return float(np.nanpercentile(norm, 99)) if np.isfinite(norm).any() else None
 
 
 def _extent(g: BathyGrid) -> tuple[float, float, float, float]:
