@@ -141,7 +141,7 @@ class SirenMapImages(pl.Callback):
     HSV and (with an MBES grid) the signed error.
 
     Reads the module's ``latest_evaluation`` (a frozen
-    :class:`~sss2bathy.modules.siren_eval.MapEvaluation`, made every
+    :class:`~sss2bathy.modules.siren_parts.MapEvaluation`, made every
     ``eval_every_n_epochs`` epochs) after each validation epoch; an evaluation already
     logged is not logged again.
     """

@@ -13,7 +13,6 @@ Logged keys: ``{stage}/loss`` and each loss term (``{stage}/loss_na``, ``{stage}
 
 from __future__ import annotations
 
-import functools
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -28,31 +27,16 @@ from sss2bathy.callbacks import CNNTableWriter, NormalImageLogger, render_window
 from sss2bathy.eval.cnn_table import table_rows_from_metrics
 from sss2bathy.losses.normal import NormalLoss
 from sss2bathy.metrics.normal import NormalMetrics
+from sss2bathy.modules.cnn_parts import (
+    COMPILED_PREFIX,
+    build_net,
+    check_batch,
+    describe_factory,
+    input_channel_names,
+    net_config,
+)
 
 log = logging.getLogger(__name__)
-
-BATCH_KEYS = ("intensity", "n_lat", "mask")
-COMPILED_PREFIX = "_orig_mod."
-
-
-def describe_factory(factory: Callable[..., Any] | None) -> dict[str, Any] | None:
-    """Plain-value description of an optimizer / scheduler factory (a ``functools.partial``
-    from Hydra's ``_partial_: true``) for hparams: ``{"name": ..., **keywords}``."""
-    if factory is None:
-        return None
-    if isinstance(factory, functools.partial):
-        func = factory.func
-        out: dict[str, Any] = {"name": f"{func.__module__}.{func.__qualname__}"}
-        for key, value in factory.keywords.items():
-            out[key] = list(value) if isinstance(value, tuple) else value
-        return out
-    return {"name": getattr(factory, "__qualname__", type(factory).__name__)}
-
-
-def net_config(net: nn.Module) -> dict[str, Any] | None:
-    """``net.config()`` if the network can describe itself (e.g. ``NormalResNet``), else None."""
-    config = getattr(net, "config", None)
-    return dict(config()) if callable(config) else None
 
 
 class NormalCNNModule(pl.LightningModule):
@@ -95,27 +79,8 @@ class NormalCNNModule(pl.LightningModule):
         channels_last: bool = False,
     ) -> None:
         super().__init__()
-        from sss2bathy.data.masks import check_channels
-
-        if input_channels is not None and not isinstance(input_channels, str):
-            input_channels = list(input_channels)
-        channels = check_channels(input_channels, "model.input_channels")
-        if not isinstance(net, nn.Module) and callable(net):
-            given = getattr(net, "keywords", {}).get("in_channels")
-            if given is not None and given != len(channels):
-                raise ValueError(
-                    f"model.net.in_channels: expected null or {len(channels)} (one per input "
-                    f"channel {list(channels)}), found {given}"
-                )
-            net = net(in_channels=len(channels))
-        if not isinstance(net, nn.Module):
-            raise ValueError(f"net: expected a torch.nn.Module, found {type(net).__name__}")
-        n_in = getattr(net, "in_channels", None)
-        if n_in is not None and n_in != len(channels):
-            raise ValueError(
-                f"model.net.in_channels: expected {len(channels)} (one per input channel "
-                f"{list(channels)}), found {n_in}"
-            )
+        channels = input_channel_names(input_channels)
+        net = build_net(net, channels)
         if not callable(optimizer):
             raise ValueError(
                 f"optimizer: expected a factory optimizer(params=...), found {optimizer!r}"
@@ -167,47 +132,11 @@ class NormalCNNModule(pl.LightningModule):
         if self.hparams.compile and stage == "fit" and not already_compiled:
             self.net = torch.compile(self.net)
 
-    @staticmethod
-    def check_batch(batch: Mapping[str, torch.Tensor], n_inputs: int = 1) -> None:
-        """Raise ``ValueError`` naming the key if ``batch`` lacks or mis-shapes a field
-        (``n_inputs``: the network's input channels; ``inputs`` is required when > 1)."""
-        if not isinstance(batch, Mapping):
-            raise ValueError(f"batch: expected a dict with keys {BATCH_KEYS}, found {type(batch)}")
-        for key in BATCH_KEYS:
-            if key not in batch:
-                raise ValueError(f"batch: missing key '{key}'; found keys {sorted(batch)}")
-        shape = tuple(batch["intensity"].shape)
-        if len(shape) != 4 or shape[1] != 1:
-            raise ValueError(f"batch['intensity']: expected shape [B, 1, H, W], found {shape}")
-        for key in ("n_lat", "mask"):
-            if tuple(batch[key].shape) != shape:
-                raise ValueError(
-                    f"batch['{key}']: expected intensity's shape {shape}, "
-                    f"found {tuple(batch[key].shape)}"
-                )
-        if "inputs" in batch:
-            got = tuple(batch["inputs"].shape)
-            n_in = n_inputs
-            if len(got) != 4 or got[0] != shape[0] or got[2:] != shape[2:] or got[1] != n_in:
-                raise ValueError(
-                    f"batch['inputs']: expected shape [{shape[0]}, {n_in}, {shape[2]}, "
-                    f"{shape[3]}] (one plane per input channel), found {got}"
-                )
-        elif n_inputs != 1:
-            raise ValueError(
-                f"batch: missing key 'inputs' for {n_inputs} input channels; found keys "
-                f"{sorted(batch)}"
-            )
-        if batch["mask"].dtype != torch.bool:
-            raise ValueError(
-                f"batch['mask']: expected dtype torch.bool, found {batch['mask'].dtype}"
-            )
-
     def model_step(
         self, batch: Mapping[str, torch.Tensor]
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """Forward + loss, shared by all stages: ``(loss terms dict, prediction [B,1,H,W])``."""
-        self.check_batch(batch, len(self.hparams.get("input_channels") or [1]))
+        check_batch(batch, len(self.hparams.get("input_channels") or [1]))
         pred = self(self.batch_inputs(batch))
         return self.loss_fn(pred, batch["n_lat"], batch["mask"]), pred
 

@@ -17,9 +17,9 @@ is built in ``__init__`` (checkpoints load into an identically shaped model) and
 is a persistent buffer (a loaded checkpoint keeps the frame it was trained with).
 
 Evaluation every ``eval_every_n_epochs`` epochs and at the last epoch
-(:class:`~sss2bathy.modules.siren_eval.MapScorer`): logged as ``val/mae``, ``val/std``,
+(:class:`~sss2bathy.modules.siren_parts.MapScorer`): logged as ``val/mae``, ``val/std``,
 ``val/grad_cs`` and the held-out altimeter scores; the latest is :attr:`latest_evaluation`
-(a frozen :class:`~sss2bathy.modules.siren_eval.MapEvaluation`, read by the callbacks).
+(a frozen :class:`~sss2bathy.modules.siren_parts.MapEvaluation`, read by the callbacks).
 :meth:`configure_callbacks` adds the map export (``map.tif``, ``map.npz``,
 ``metrics.json``, PNGs into ``output_dir``; :class:`~sss2bathy.callbacks.SirenMapExport`)
 and, with ``log_images``, the TensorBoard map images.
@@ -43,12 +43,14 @@ from sss2bathy.models.arc_fit import arc_geometry, finder_config
 from sss2bathy.models.direct_fit import MBESCellFit
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
 from sss2bathy.models.siren import Siren
-from sss2bathy.modules.siren_eval import (
+from sss2bathy.modules.siren_parts import (
     SELECT_BEST,
     BestSnapshot,
     MapEvaluation,
     MapScorer,
+    describe_fit,
     finite_metrics,
+    param_groups,
 )
 
 log = logging.getLogger(__name__)
@@ -82,7 +84,7 @@ class SirenModule(pl.LightningModule):
         sensor_lr, encoding_lr: learning rates of the sensor model's and the SIREN input
             encoding's parameters; ``None`` = the optimizer's.
         select_best: the final map is the SIREN of the evaluation with the lowest such
-            metric (:data:`~sss2bathy.modules.siren_eval.SELECT_BEST`), or the last (None).
+            metric (:data:`~sss2bathy.modules.siren_parts.SELECT_BEST`), or the last (None).
     """
 
     def __init__(
@@ -180,24 +182,7 @@ class SirenModule(pl.LightningModule):
         self.theta_cache.copy_(cache)
 
     def configure_optimizers(self) -> dict[str, Any]:
-        enc = self.siren.encoding
-        enc_params = list(enc.parameters()) if enc is not None else []
-        enc_ids = {id(p) for p in enc_params}
-        groups = [{"params": [p for p in self.siren.parameters() if id(p) not in enc_ids]}]
-        if enc_params:
-            lr = {} if self.encoding_lr is None else {"lr": self.encoding_lr}
-            groups.append({"params": enc_params, **lr})
-        # a sensor may split its parameters (e.g. the reflectivity field's own lr); groups
-        # without "lr" take sensor_lr
-        split = getattr(self.sensor, "parameter_groups", None)
-        sensor_groups = (
-            split() if split else [{"params": list(self.sensor.parameters())}]
-            if self.sensor is not None else []
-        )  # fmt: skip
-        for group in (g for g in sensor_groups if g["params"]):
-            if self.sensor_lr is not None and "lr" not in group:
-                group = {**group, "lr": self.sensor_lr}
-            groups.append(group)
+        groups = param_groups(self.siren, self.sensor, self.encoding_lr, self.sensor_lr)
         opt = self.optimizer_factory(params=groups)
         if self.scheduler_factory is None:
             return {"optimizer": opt}
@@ -295,18 +280,8 @@ class SirenModule(pl.LightningModule):
         return getattr(self.sensor, "title", type(self.sensor).__name__)
 
     def hparams_for_log(self) -> dict[str, Any]:
-        """Flat hyper-parameters for the loggers' HPARAMS (with the final map's metrics)."""
-        siren, enc = self.siren, self.siren.encoding
-        flat: dict[str, Any] = {
-            "siren/hidden": siren.hidden,
-            "siren/n_layers": siren.n_layers,
-            "siren/omega0": siren.omega0,
-            "siren/precision": siren.precision,
-            "siren/encoding": type(enc).__name__ if enc is not None else "none",
-            "sensor": type(self.sensor).__name__ if self.sensor is not None else "none",
-            "w_height": self.w_height,
-        }
-        flat.update({f"finder/{k}": str(v) if v is None else v for k, v in self.finder.items()})
+        """Flat hyper-parameters for the loggers' HPARAMS (:func:`describe_fit`, the lr)."""
+        flat = describe_fit(self.siren, self.sensor, self.w_height, self.finder)
         opt = self.trainer.optimizers[0] if self.trainer.optimizers else None
         if opt is not None:
             flat["lr"] = opt.defaults.get("lr")

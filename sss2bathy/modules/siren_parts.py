@@ -1,5 +1,5 @@
-"""The map evaluation of a SIREN fit: the SIREN sampled on a grid and scored (plain
-functions and values, no Lightning).
+"""Plain parts of the SIREN fit's module (no Lightning): map evaluation, the final-map
+choice, the optimiser's parameter groups and the hparams description.
 
 * :class:`MapScorer` fixes, once the survey is known, the evaluation grid (the MBES grid,
   or ``eval_cell_m`` cells over the bounds), the *surveyed area* (cells within the swath
@@ -7,6 +7,8 @@ functions and values, no Lightning).
   :meth:`~MapScorer.evaluate` returns a :class:`MapEvaluation`.
 * :class:`BestSnapshot` keeps a copy of the SIREN at the evaluation with the lowest
   ``select_best`` metric, for the final map.
+* :func:`param_groups`: the SIREN's, its input encoding's and the sensor model's
+  parameters with their learning rates; :func:`describe_fit`: flat hparams.
 
 Metrics: ``mae``, ``std``, ``grad_cs``, ``n_cells`` against the MBES grid
 (:func:`sss2bathy.eval.maps.map_metrics`) and, with held-out altimeter points,
@@ -152,4 +154,60 @@ class BestSnapshot:
         return int(self.best["epoch"])
 
 
-__all__ = ["SELECT_BEST", "BestSnapshot", "MapEvaluation", "MapScorer", "finite_metrics"]
+def param_groups(
+    siren: torch.nn.Module,
+    sensor: torch.nn.Module | None,
+    encoding_lr: float | None = None,
+    sensor_lr: float | None = None,
+) -> list[dict[str, Any]]:
+    """Optimiser parameter groups: the SIREN without its encoding; the encoding's
+    parameters (at ``encoding_lr``, None = the optimiser's); the sensor's groups (its
+    ``parameter_groups()`` when it splits them, e.g. the reflectivity field's own lr; groups
+    without ``lr`` take ``sensor_lr``). Empty groups are left out."""
+    enc = getattr(siren, "encoding", None)
+    enc_params = list(enc.parameters()) if enc is not None else []
+    enc_ids = {id(p) for p in enc_params}
+    groups = [{"params": [p for p in siren.parameters() if id(p) not in enc_ids]}]
+    if enc_params:
+        groups.append(
+            {"params": enc_params, **({} if encoding_lr is None else {"lr": encoding_lr})}
+        )
+    if sensor is None:
+        return groups
+    split = getattr(sensor, "parameter_groups", None)
+    for group in split() if split else [{"params": list(sensor.parameters())}]:
+        if not group["params"]:
+            continue
+        if sensor_lr is not None and "lr" not in group:
+            group = {**group, "lr": sensor_lr}
+        groups.append(group)
+    return groups
+
+
+def describe_fit(
+    siren: Any, sensor: torch.nn.Module | None, w_height: float, finder: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Flat hyper-parameters of a SIREN fit for the loggers' HPARAMS."""
+    enc = siren.encoding
+    flat: dict[str, Any] = {
+        "siren/hidden": siren.hidden,
+        "siren/n_layers": siren.n_layers,
+        "siren/omega0": siren.omega0,
+        "siren/precision": siren.precision,
+        "siren/encoding": type(enc).__name__ if enc is not None else "none",
+        "sensor": type(sensor).__name__ if sensor is not None else "none",
+        "w_height": w_height,
+    }
+    flat.update({f"finder/{k}": str(v) if v is None else v for k, v in finder.items()})
+    return flat
+
+
+__all__ = [
+    "SELECT_BEST",
+    "BestSnapshot",
+    "MapEvaluation",
+    "MapScorer",
+    "describe_fit",
+    "finite_metrics",
+    "param_groups",
+]
