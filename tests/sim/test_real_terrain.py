@@ -439,3 +439,17 @@ def test_xyz_depth_points_give_the_same_terrain_as_the_geotiff(tmp_path):
 def _terrain_params(cfg: dict):
     config = SyntheticSurveyConfig.from_mapping(cfg)
     return config.terrain, config.materials
+
+
+def test_real_figure_draws_hillshade_and_waterfall(tmp_path):
+    from sss2bathy.sim.real_figure import main, render_real_survey
+
+    path, _ = _holes_and_spikes_grid(tmp_path)
+    cfg = _as_grid_config(_tiny(), path)
+    cfg["plan"] = {**cfg["plan"], "heading_deg": 0.0, "margin_m": 1.0}
+    survey, _ = generate_survey(SyntheticSurveyConfig.from_mapping(cfg))
+    out = render_real_survey(survey, tmp_path / "fig" / "real.png")
+    assert out.is_file() and out.stat().st_size > 10_000
+    with pytest.raises(ValueError, match="line: expected one of"):
+        render_real_survey(survey, tmp_path / "bad.png", "line_999")
+    assert main([str(tmp_path / "no_survey")]) == 2
