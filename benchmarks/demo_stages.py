@@ -27,7 +27,12 @@ def demo_stage_times(path: str | Path) -> dict:
             "info": {"missing": True},
             "notes": f"{path} not found: run `make demo` first (not re-run here).",
         }
-    data = json.loads(path.read_text())
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(
+            f"{path}: expected JSON stage times, found unreadable text ({err})"
+        ) from err
     seconds = data.get("seconds") if isinstance(data, Mapping) else None
     if not isinstance(seconds, Mapping):
         raise ValueError(f"{path}: expected a 'seconds' mapping of stage times, found {data!r}")

@@ -28,6 +28,7 @@ from benchmarks.config import project_root
 from benchmarks.machine import cpu_clock, machine_info, other_load
 from benchmarks.report import to_markdown, write_report
 from benchmarks.timing import resolve_device
+from sss2bathy.cli._common import user_errors
 
 SECTIONS = ("siren_step", "finder", "cnn", "sim", "drape", "demo_stages")
 SECTION_TITLES = {
@@ -171,7 +172,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+@user_errors
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmarks and write the report; a bad input ends with one ``error:`` line."""
     args = parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)

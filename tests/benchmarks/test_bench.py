@@ -187,3 +187,10 @@ def test_cli_writes_report(tmp_path, capsys, monkeypatch):
     assert "| make demo stages | prepare_d1 | 12.5 | s |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         runner.parse_args(["--root", str(tmp_path)])  # no conf/ there
+    capsys.readouterr()
+    stage_file.write_text("{not json")
+    with pytest.raises(SystemExit) as exit_info:
+        runner.main(["--only", "demo_stages", "--stage-times", str(stage_file), "--out", str(out)])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {stage_file}: expected JSON stage times")
