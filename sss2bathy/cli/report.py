@@ -1,4 +1,5 @@
-"""``sss2bathy-report``: gather the latest run of each experiment into ``outputs/report/``.
+"""``sss2bathy-report``: gather the latest run of each experiment into ``outputs/report/``
+(``index.html``, a self-contained web page, and ``index.md``).
 
 sss2bathy-report                      # outputs/ -> outputs/report/
 sss2bathy-report --outputs /scratch/outputs --out /tmp/report
@@ -22,7 +23,7 @@ def main(argv: list[str] | None = None) -> None:
     from sss2bathy.eval.report import build_report
 
     path = build_report(args.outputs, args.out)
-    print(f"report: {path}")
+    print(f"report: {path.with_suffix('.html')} (web page) and {path}")
 
 
 if __name__ == "__main__":

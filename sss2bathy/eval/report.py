@@ -4,7 +4,11 @@
 under ``outputs/runs/<task>/`` or ``outputs/multiruns/<task>/.../`` holding ``metrics.json``
 and ``run_info.json``) and writes ``outputs/report/``:
 
-* ``index.md`` — every table and figure, with the run folders it came from;
+* ``index.md`` — every table and figure, with the run folders it came from (links to each
+  run folder and its ``.hydra/config.yaml``) and the pipeline's stage times;
+* ``index.html`` — the same as one self-contained web page (figures embedded as ``data:``
+  URIs, tables as HTML tables; the run and config links are relative, so they work while
+  the report stays inside its ``outputs/`` folder);
 * ``table_cnn.{md,csv}`` — Table 2 (CNN, test lines of ``synthetic_d1`` and all of ``synthetic_d2``);
 * ``table_siren_d1.{md,csv}``, ``table_siren_d2.{md,csv}`` — Tables 3 and 4;
   ``table_siren_d3.{md,csv}`` — the same on ``synthetic_d3`` (another sonar; no paper rows);
@@ -25,6 +29,7 @@ import csv
 import io
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -186,7 +191,13 @@ def _save(fig: Any, path: Path) -> Path:
     return save_figure(fig, path, dpi=110)
 
 
-def plot_pdfs(maps: list[MapRun], truth: BathyGrid, region: np.ndarray, path: Path) -> Path:
+def plot_pdfs(
+    maps: list[MapRun],
+    truth: BathyGrid,
+    region: np.ndarray,
+    path: Path,
+    title: str = "PDF of signed height errors",
+) -> Path:
     """Probability density of the signed errors of every variant (shared bins)."""
     import matplotlib
 
@@ -205,9 +216,9 @@ def plot_pdfs(maps: list[MapRun], truth: BathyGrid, region: np.ndarray, path: Pa
         )
     ax.axvline(0.0, color="k", lw=0.6)
     ax.set_xlabel("signed error  map − MBES (m)")
-    ax.set_ylabel("probability density")
+    ax.set_ylabel("probability density (1/m)")
     ax.legend(fontsize=8)
-    ax.set_title("PDF of signed height errors")
+    ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
 
@@ -222,42 +233,74 @@ def _panels(
     title: str = "",
     axes_note: str = "axes: local coordinates (m)",
 ) -> Path:
-    """Row 1 bathymetry, row 2 HSV gradient; columns MBES then each map (optional mosaic)."""
+    """Row 1 bathymetry, row 2 HSV gradient; columns MBES then each map (optional mosaic),
+    and a last column with the height colour bar (m) and the gradient colour-wheel key.
+
+    All panels share the height colour limits (the MBES range) and the gradient brightness
+    scale (the MBES's 99th-percentile slope); north is up, the axes are local metres and
+    ``axes_note`` (:func:`_origin_note`) says where the origin is."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sss2bathy.eval.maps import gradient_hsv
+    from sss2bathy.eval.maps import HEIGHT_LABEL, gradient_hsv, hsv_wheel_key, north_arrow
 
     rows_sl, cols_sl = window or (slice(None), slice(None))
     sub = region[rows_sl, cols_sl]
     h = truth.cell_size / 2
     xs, ys = truth.x[cols_sl], truth.y[rows_sl]
     extent = (xs[0] - h, xs[-1] + h, ys[0] - h, ys[-1] + h)
-    named = [("MBES", truth.heights)] + [(m.label, m.heights) for m in maps]
+    named = [("MBES (ground truth)", truth.heights)] + [(m.label, m.heights) for m in maps]
     tx, ty = map_gradient(truth.heights, truth.cell_size)
     vmax = float(np.nanpercentile(np.hypot(tx, ty)[region], 99)) if region.any() else None
     zt = truth.heights[rows_sl, cols_sl][sub]
     lo, hi = (float(np.nanmin(zt)), float(np.nanmax(zt))) if zt.size else (None, None)
     ncol = len(named) + (mosaic is not None)
-    fig, axes = plt.subplots(2, ncol, figsize=(2.6 * ncol, 5.6), squeeze=False)
+    fig, axes = plt.subplots(
+        2,
+        ncol + 1,
+        figsize=(2.7 * ncol + 2.2, 6.4),
+        squeeze=False,
+        layout="constrained",
+        width_ratios=[1.0] * ncol + [0.8],
+    )
+    image = None
     for j, (label, z) in enumerate(named):
         shown = np.where(sub, z[rows_sl, cols_sl], np.nan)
-        axes[0, j].imshow(shown, origin="lower", extent=extent, cmap="viridis", vmin=lo, vmax=hi)
+        image = axes[0, j].imshow(
+            shown, origin="lower", extent=extent, cmap="viridis", vmin=lo, vmax=hi
+        )
         gx, gy = map_gradient(z, truth.cell_size)
         rgb = gradient_hsv(gx[rows_sl, cols_sl], gy[rows_sl, cols_sl], vmax)
         axes[1, j].imshow(np.where(sub[..., None], rgb, 0.0), origin="lower", extent=extent)
         axes[0, j].set_title(label, fontsize=9)
     if mosaic is not None:
-        axes[0, -1].imshow(mosaic[rows_sl, cols_sl], origin="lower", extent=extent, cmap="gray")
-        axes[0, -1].set_title("sidescan mosaic", fontsize=9)
-        axes[1, -1].axis("off")
-    for ax in axes.ravel():
+        axes[0, ncol - 1].imshow(
+            mosaic[rows_sl, cols_sl], origin="lower", extent=extent, cmap="gray"
+        )
+        axes[0, ncol - 1].set_title("sidescan mosaic (test lines)", fontsize=9)
+        axes[1, ncol - 1].axis("off")
+    for ax in axes[:, :ncol].ravel():
         ax.tick_params(labelsize=6)
-    fig.suptitle(title or "bathymetry (top) and gradient in HSV (bottom)", fontsize=10)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("y north (m)", fontsize=7)
+    for ax in axes[1, :ncol]:
+        ax.set_xlabel("x east (m)", fontsize=7)
+    north_arrow(axes[0, 0])
+    # the last column: the height colour bar and the gradient key
+    axes[0, -1].axis("off")
+    if image is not None:
+        cax = axes[0, -1].inset_axes((0.05, 0.05, 0.18, 0.9))
+        fig.colorbar(image, cax=cax, label=HEIGHT_LABEL)
+        cax.yaxis.label.set_fontsize(7)
+        cax.tick_params(labelsize=6)
+    hsv_wheel_key(axes[1, -1], vmax)
+    fig.suptitle(
+        title or "bathymetry (top, one colour scale) and gradient in HSV (bottom), north up",
+        fontsize=10,
+    )
     fig.supxlabel(axes_note, fontsize=7)
-    fig.tight_layout()
     return _save(fig, path)
 
 
@@ -314,6 +357,16 @@ def sidescan_mosaic(survey_dir: Path, like: BathyGrid, split: str = "test") -> n
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
+def _run_links(label: str, run: RunRecord, out: Path) -> str:
+    """A Markdown list item: the run folder and its composed config, relative to ``out``."""
+    folder = Path(os.path.relpath(run.path, out)).as_posix()
+    config = run.path / ".hydra" / "config.yaml"
+    links = f"[run folder]({folder}/)"
+    if config.is_file():
+        links += f" · [config]({folder}/.hydra/config.yaml)"
+    return f"- {label}: {links} (`{run.path}`)"
+
+
 def _survey_section(
     variants: list[tuple[str, str]],
     runs: dict[str, RunRecord],
@@ -332,6 +385,7 @@ def _survey_section(
     maps = [m for t, lbl in present if (m := load_map_run(lbl, runs[t], truth)) is not None]
     if not maps:
         return [f"## {title}", "", "None of these runs left a map.", ""]
+    survey = runs[present[0][0]].info.get("survey_name") or key
     rows, common = score_maps(maps, truth)
     md, table_csv = siren_table(rows, paper, title)
     atomic_write_text(out / f"table_siren_{key}.md", md)
@@ -341,11 +395,17 @@ def _survey_section(
         truth,
         common,
         out / f"pdf_{key}.png",
+        f"{survey}: PDF of the signed height errors (map − MBES) of the SIREN variants",
     )
     note = _origin_note(runs[present[0][0]])
-    _panels(truth, maps, common, out / f"maps_{key}.png", axes_note=note)
-    lines = [f"## {title}", "", md.split("\n", 2)[2], f"![PDF of signed errors](pdf_{key}.png)", ""]
-    lines += [f"![maps](maps_{key}.png)", ""]
+    maps_title = (
+        f"{survey}: SIREN variants beside the MBES — bathymetry (top) and gradient in HSV "
+        "(bottom), on the cells every variant scored; north up"
+    )
+    _panels(truth, maps, common, out / f"maps_{key}.png", title=maps_title, axes_note=note)
+    lines = [f"## {title}", "", md.split("\n", 2)[2]]
+    lines += [f"![{survey}: PDF of the signed height errors](pdf_{key}.png)", ""]
+    lines += [f"![{survey}: maps of every SIREN variant beside the MBES](maps_{key}.png)", ""]
     if zoom:
         size = max(16, int(round(min(common.shape) * 0.3)))
         survey_dir = Path(maps[0].run.info["data_dir"]) / maps[0].run.info["survey_name"]
@@ -353,15 +413,41 @@ def _survey_section(
         chosen = [m for m in maps if m.label in ZOOM_LABELS]
         for k, window in enumerate(roughest_windows(truth, common, size)):
             name = f"zoom_{key}_{k}.png"
-            zoom_title = f"roughest area {k + 1}"
+            zoom_title = f"{survey}: roughest area {k + 1} — bathymetry and gradient, north up"
             _panels(truth, chosen, common, out / name, window, mosaic, zoom_title, note)
-            lines += [f"![zoom {k + 1}]({name})", ""]
-    lines += ["Runs: " + ", ".join(f"{m.label}: `{m.run.path}`" for m in maps), ""]
+            lines += [f"![{survey}: zoom on the roughest area {k + 1}]({name})", ""]
+    lines += ["Runs:", ""] + [_run_links(m.label, m.run, out) for m in maps] + [""]
     return lines
 
 
+def stage_times_section(outputs_dir: Path, runs: dict[str, RunRecord]) -> list[str]:
+    """The pipeline's stage wall times (``report/stage_times.json``) as a Markdown table,
+    with each training stage's run; none when the pipeline did not run."""
+    times = outputs_dir / "report" / "stage_times.json"
+    if not times.is_file():
+        return []
+    try:
+        stage = json.loads(times.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        log.warning("stage times unreadable (%s): %s", times, exc)
+        return []
+    lines = [
+        "## Stage times",
+        "",
+        f"Wall time of each stage of the last pipeline run (scale `{stage.get('scale')}`).",
+        "",
+        "| stage | seconds | run |",
+        "|---|---:|---|",
+    ]
+    for name, seconds in stage.get("seconds", {}).items():
+        run = runs.get(name)
+        lines.append(f"| {name} | {seconds} | {f'`{run.path.name}`' if run else ''} |")
+    return lines + [""]
+
+
 def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> Path:
-    """Write the report of the latest runs under ``outputs_dir``; return ``index.md``."""
+    """Write the report of the latest runs under ``outputs_dir``: ``index.md`` and the same
+    as a self-contained web page ``index.html`` (figures embedded); return ``index.md``."""
     outputs_dir = Path(outputs_dir)
     out = Path(out_dir) if out_dir is not None else outputs_dir / "report"
     out.mkdir(parents=True, exist_ok=True)
@@ -385,7 +471,8 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
     if rows:
         atomic_write_text(out / "table_cnn.md", cnn_table_markdown(rows, const))
         atomic_write_text(out / "table_cnn.csv", cnn_table_csv(rows, const))
-        index += [cnn_table_markdown(rows, const).split("\n", 2)[2], f"Run: `{cnn.path}`", ""]
+        index += [cnn_table_markdown(rows, const).split("\n", 2)[2], "Run:", ""]
+        index += [_run_links("CNN", cnn, out), ""]
     else:
         index += ["No finished CNN run with test metrics was found.", ""]
     index += _survey_section(
@@ -397,12 +484,58 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
     index += _survey_section(
         D3_VARIANTS, runs, {}, "d3", "SIREN on synthetic_d3 (another sonar)", out, False
     )
-    times = outputs_dir / "report" / "stage_times.json"
-    if times.is_file():
-        stage = json.loads(times.read_text())
-        index += ["## Stage times", "", "| stage | seconds |", "|---|---:|"]
-        index += [f"| {k} | {v} |" for k, v in stage.get("seconds", {}).items()]
-        index.append("")
+    index += stage_times_section(outputs_dir, runs)
     path = out / "index.md"
-    atomic_write_text(path, "\n".join(index))
+    text = "\n".join(index)
+    atomic_write_text(path, text)
+    atomic_write_text(out / "index.html", markdown_to_html(text, out, "sss2bathy report"))
     return path
+
+
+HTML_STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1400px; margin: 2em auto; padding: 0 1em;
+       color: #222; line-height: 1.45; }
+h1, h2 { border-bottom: 1px solid #ddd; padding-bottom: .2em; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 14px; }
+th, td { border: 1px solid #ccc; padding: 3px 8px; }
+th { background: #f3f3f3; }
+tr:nth-child(even) td { background: #fafafa; }
+img { max-width: 100%; height: auto; display: block; margin: .5em 0; }
+figure { margin: 1em 0; }
+figcaption { font-size: 13px; color: #555; }
+code { font-size: 12px; color: #555; }
+"""
+
+
+def markdown_to_html(text: str, folder: Path, title: str) -> str:
+    """A self-contained web page of the report's Markdown ``text``: tables as HTML tables,
+    each figure (a PNG in ``folder``) embedded as a ``data:`` URI with its alt text as the
+    caption; links stay relative (run folders, their ``.hydra/config.yaml``)."""
+    import base64
+    import html
+    import re
+
+    import markdown
+
+    body = markdown.markdown(text, extensions=["tables"], output_format="html")
+
+    def embed(match: re.Match) -> str:
+        alt, src = html.unescape(match.group("alt")), html.unescape(match.group("src"))
+        png = folder / src
+        if not png.is_file():
+            log.warning("report: figure %s is missing; left out of index.html", png)
+            return f"<p><em>figure missing: {html.escape(src)}</em></p>"
+        data = base64.b64encode(png.read_bytes()).decode("ascii")
+        return (
+            f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}" '
+            f'data-file="{html.escape(src)}" /><figcaption>{html.escape(alt)}</figcaption>'
+            "</figure>"
+        )
+
+    pattern = r'<p><img alt="(?P<alt>[^"]*)" src="(?P<src>[^"]+)" ?/?></p>'
+    body = re.sub(pattern, embed, body)
+    return (
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8" />\n'
+        f"<title>{html.escape(title)}</title>\n<style>{HTML_STYLE}</style>\n</head>\n"
+        f"<body>\n{body}\n</body>\n</html>\n"
+    )
