@@ -17,43 +17,15 @@ benchmarks call it through the module's ``sidescan_geometry``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
 import torch
 
 from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
-from sss2bathy.models.intersection import SOLVERS, find_intersections
+from sss2bathy.models.intersection import FinderSettings, find_intersections
 from sss2bathy.models.sensors import ArcGeometry
 from sss2bathy.models.siren import Siren, autocast_disabled
-
-# finder settings of the SIREN fits (model.finder; ``warm_bracket_deg`` in degrees)
-FINDER_DEFAULTS: dict[str, Any] = {
-    "solver": "secant",
-    "max_iter": None,
-    "tol_m": 1e-3,
-    "gd_step": 0.01,
-    "warm_start": True,
-    "n_scan": 16,
-    "scan_max_slope": 1.0,
-    "warm_bracket_deg": 0.5,
-    "chunk": 8192,
-}
-
-
-def finder_config(finder: Mapping[str, Any] | None) -> dict[str, Any]:
-    """:data:`FINDER_DEFAULTS` updated by ``finder``; unknown keys or solvers raise
-    ``ValueError`` naming ``finder.<key>``."""
-    cfg = dict(FINDER_DEFAULTS)
-    given = dict(finder or {})
-    unknown = sorted(set(given) - set(cfg))
-    if unknown:
-        raise ValueError(f"finder: expected keys among {sorted(cfg)}, found unknown {unknown}")
-    cfg.update(given)
-    if cfg["solver"] not in SOLVERS:
-        raise ValueError(f"finder.solver: expected one of {SOLVERS}, found {cfg['solver']!r}")
-    return cfg
 
 
 def arc_geometry(
@@ -61,7 +33,7 @@ def arc_geometry(
     batch: dict[str, torch.Tensor],
     use: torch.Tensor,
     theta_limits: tuple[float, float],
-    finder: Mapping[str, Any],
+    finder: FinderSettings | Mapping[str, Any] | None,
     theta_cache: torch.Tensor | None = None,
 ) -> tuple[ArcGeometry, dict[str, torch.Tensor]]:
     """Crossings of a batch's bins with the SIREN, and the SIREN's normals there.
@@ -71,7 +43,8 @@ def arc_geometry(
         batch: ping batch (``position``, ``rotation``, ``range_m``, ``line``, ``index``).
         use: ``(P, 2, B)`` bool, the bins to use (the sensor model's ``bin_mask``).
         theta_limits: beam limits (rad).
-        finder: finder settings (:data:`FINDER_DEFAULTS` keys; missing ones take the default).
+        finder: :class:`~sss2bathy.models.intersection.FinderSettings` (or a mapping of its
+            fields; missing ones take its defaults).
         theta_cache: ``(n_pings, 2, B)`` per-bin warm-start angles indexed by the batch's
             ``index`` (NaN = none yet, +inf = no crossing last time), updated in place;
             ``None`` = cold solves.
@@ -81,31 +54,18 @@ def arc_geometry(
         graph; ``geo.ping`` indexes the batch) and finder statistics (``valid_fraction``,
         ``finder_iters`` = mean solver evaluations per bin).
     """
-    finder = finder_config(finder)
+    finder = FinderSettings.from_mapping(finder)
     pi, si, bi = use.nonzero(as_tuple=True)
     sonar, rot = batch["position"][pi], batch["rotation"][pi]
     range_m = batch["range_m"][bi]
-    warm = finder["warm_start"] and theta_cache is not None
+    warm = finder.warm_start and theta_cache is not None
     cache_idx = (batch["index"][pi], si, bi)
     # Geometry in float32 even under an enclosing autocast (bf16 would move crossings and
     # normals by centimetres); the SIREN picks its own precision (Siren.precision).
     with autocast_disabled(sonar.device):
+        theta0 = theta_cache[cache_idx] if warm else None
         theta, valid, n_iter = find_intersections(
-            siren,
-            sonar,
-            rot,
-            range_m,
-            si,
-            theta_limits,
-            solver=finder["solver"],
-            theta0=theta_cache[cache_idx] if warm else None,
-            max_iter=finder["max_iter"],
-            tol_m=finder["tol_m"],
-            gd_step=finder["gd_step"],
-            n_scan=finder["n_scan"],
-            scan_max_slope=finder["scan_max_slope"],
-            warm_bracket_rad=math.radians(finder["warm_bracket_deg"]),
-            chunk=finder["chunk"],
+            siren, sonar, rot, range_m, si, theta_limits, theta0=theta0, settings=finder
         )
         if warm:
             # +inf marks "no crossing": next time only the beam's ends are checked
@@ -137,4 +97,4 @@ def arc_geometry(
     return geo, stats
 
 
-__all__ = ["FINDER_DEFAULTS", "arc_geometry", "finder_config"]
+__all__ = ["arc_geometry"]

@@ -39,8 +39,9 @@ from pytorch_lightning.callbacks import Callback
 from sss2bathy.callbacks import SirenMapExport, SirenMapImages
 from sss2bathy.data.siren_inputs import SirenInputs
 from sss2bathy.losses.siren import height_loss, total_loss
-from sss2bathy.models.arc_fit import arc_geometry, finder_config
+from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.direct_fit import MBESCellFit
+from sss2bathy.models.intersection import FinderSettings
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
 from sss2bathy.models.siren import Siren
 from sss2bathy.modules.siren_parts import (
@@ -73,7 +74,9 @@ class SirenModule(pl.LightningModule):
         w_height: ``w_H`` of eq. 7.
         optimizer, scheduler: partial ``torch.optim`` optimizer (called with the parameter
             groups) and LR scheduler (called with the optimizer, stepped per epoch).
-        finder: intersection-finder settings (:data:`~sss2bathy.models.arc_fit.FINDER_DEFAULTS`).
+        finder: intersection-finder settings, fields of
+            :class:`~sss2bathy.models.intersection.FinderSettings` (the one source of their
+            defaults).
         eval_every_n_epochs: epochs between map evaluations (also at the end of the fit).
         eval_cell_m: map cell (m) when the survey has no MBES grid.
         region_radius_m: scored area's radius around the tracks (m); default the swath
@@ -94,7 +97,7 @@ class SirenModule(pl.LightningModule):
         w_height: float = 1.0,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
-        finder: Mapping[str, Any] | None = None,
+        finder: FinderSettings | Mapping[str, Any] | None = None,
         eval_every_n_epochs: int = 50,
         eval_cell_m: float = 0.5,
         region_radius_m: float | None = None,
@@ -124,7 +127,7 @@ class SirenModule(pl.LightningModule):
         self.w_height = float(w_height)
         self.optimizer_factory = optimizer or (lambda params: torch.optim.Adam(params, lr=2e-4))
         self.scheduler_factory = scheduler
-        self.finder = finder_config(finder)
+        self.finder = FinderSettings.from_mapping(finder)
         self.eval_every_n_epochs = int(eval_every_n_epochs)
         self.eval_cell_m = float(eval_cell_m)
         self.region_radius_m = region_radius_m

@@ -18,6 +18,7 @@ Metrics: ``mae``, ``std``, ``grad_cs``, ``n_cells`` against the MBES grid
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -185,7 +186,7 @@ def param_groups(
 
 
 def describe_fit(
-    siren: Any, sensor: torch.nn.Module | None, w_height: float, finder: Mapping[str, Any]
+    siren: Any, sensor: torch.nn.Module | None, w_height: float, finder: Any
 ) -> dict[str, Any]:
     """Flat hyper-parameters of a SIREN fit for the loggers' HPARAMS."""
     enc = siren.encoding
@@ -198,7 +199,8 @@ def describe_fit(
         "sensor": type(sensor).__name__ if sensor is not None else "none",
         "w_height": w_height,
     }
-    flat.update({f"finder/{k}": str(v) if v is None else v for k, v in finder.items()})
+    settings = dataclasses.asdict(finder) if dataclasses.is_dataclass(finder) else dict(finder)
+    flat.update({f"finder/{k}": str(v) if v is None else v for k, v in settings.items()})
     return flat
 
 

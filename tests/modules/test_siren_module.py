@@ -187,7 +187,7 @@ def test_cnn_experiment_config(tmp_path, tiny_survey):
     assert cfg.data.normals == "cnn" and cfg.data.cnn_checkpoint == "latest"
     assert cfg.data.cnn_runs_dir == os.path.join(str(tmp_path / "outputs"), "runs", "cnn")
     model = hydra.utils.instantiate(cfg.model)
-    assert isinstance(model, SirenModule) and model.finder["solver"] == "secant"
+    assert isinstance(model, SirenModule) and model.finder.solver == "secant"
     dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
     with pytest.raises(ValueError, match="cnn_checkpoint"):
         dm.setup("fit")  # no CNN trained under this output dir
@@ -280,3 +280,44 @@ def test_select_best_through_hydra_writes_the_chosen_epoch(tmp_path, tiny_survey
     assert model.best.best is not None
     # the written map's held-out score is the best one seen
     assert final["final/holdout_alt_mae"] <= model.best.best["value"] + 1e-6
+
+
+def test_finder_block_of_the_siren_config_is_finder_settings_defaults():
+    """conf/model/siren_normals.yaml lists the finder's keys (so they can be overridden on
+    the command line) with FinderSettings' defaults, the one source of them."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from sss2bathy.models.intersection import FinderSettings
+
+    block = OmegaConf.to_container(OmegaConf.load(ROOT / "conf/model/siren_normals.yaml").finder)
+    assert block == dataclasses.asdict(FinderSettings())
+    module = SirenModule(Siren(hidden=8, n_layers=3), sensor=None, finder={"solver": "newton"})
+    assert module.finder == FinderSettings(solver="newton")
+    with pytest.raises(ValueError, match=r"finder\.n_scan: expected"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, finder={"n_scan": 1})
+
+
+def test_direct_fit_sensor_checks_its_arguments_and_needs_mbes():
+    from sss2bathy.models.direct_fit import MBESCellFit
+
+    with pytest.raises(ValueError, match="n_points: expected a positive integer, found 0"):
+        MBESCellFit(n_points=0)
+    fit = MBESCellFit(n_points=5)
+    with pytest.raises(ValueError, match="expected a survey with an MBES grid, found none"):
+        fit.set_cells_from_grid(None, None, None, np.ones((2, 2), bool))
+    heights = np.array([[-10.0, np.nan], [-11.0, -12.0]])
+    fit.set_cells_from_grid(
+        np.array([0.0, 1.0]), np.array([5.0, 6.0]), heights, np.ones((2, 2), bool)
+    )
+    assert fit.cells.tolist() == [[0.0, 5.0, -10.0], [0.0, 6.0, -11.0], [1.0, 6.0, -12.0]]
+    siren = Siren(hidden=8, n_layers=3)
+    loss, logs = fit.loss(siren)
+    with torch.no_grad():
+        z = siren.height(fit.cells[:, :2])
+    assert float(loss) <= float((z - fit.cells[:, 2]).abs().max()) and "loss_direct" in logs
+    with pytest.raises(ValueError, match="no finite cell"):
+        fit.set_cells_from_grid(
+            np.array([0.0]), np.array([0.0]), heights[:1, 1:], np.ones((1, 1), bool)
+        )
