@@ -25,10 +25,9 @@ import torch
 
 from benchmarks import cnn, demo_stages, draping, finder, projection, simulator, siren_step
 from benchmarks.config import project_root
-from benchmarks.machine import cpu_clock, machine_info, other_load
+from benchmarks.machine import cpu_clock, git_revision, machine_info, other_load
 from benchmarks.report import to_markdown, write_report
 from benchmarks.timing import resolve_device
-from sss2bathy.cli._common import user_errors
 
 SECTIONS = ("siren_step", "finder", "cnn", "sim", "drape", "demo_stages")
 SECTION_TITLES = {
@@ -172,26 +171,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-@user_errors
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmarks and write the report; a bad input ends with one ``error:`` line."""
+    """Run the benchmarks and write the report; a bad input (a ``ValueError`` naming it)
+    ends with one ``error:`` line on stderr and exit status 2 (``HYDRA_FULL_ERROR=1``: the
+    traceback, as the entry points do)."""
     args = parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    # the package's own helpers (git revision, conf paths) then see the same checkout
-    os.environ["SSS2BATHY_ROOT"] = str(args.root)
-    from sss2bathy.cli._common import git_revision
-
     out = Path(args.out) if args.out else args.root / "outputs" / "bench"
-    doc = run_benchmarks(
-        only=args.only,
-        quick=args.quick,
-        device=args.device,
-        root=args.root,
-        stage_times=args.stage_times,
-        progress=lambda line: print(line, file=sys.stderr, flush=True),
-    )
-    doc["machine"]["git"] = git_revision()
+    try:
+        doc = run_benchmarks(
+            only=args.only,
+            quick=args.quick,
+            device=args.device,
+            root=args.root,
+            stage_times=args.stage_times,
+            progress=lambda line: print(line, file=sys.stderr, flush=True),
+        )
+    except ValueError as err:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print("error: " + " ".join(str(err).split()), file=sys.stderr, flush=True)
+        return 2
+    doc["machine"]["git"] = git_revision(args.root)
     paths = write_report(doc, out)
     print(to_markdown(doc))
     print(f"written: {paths['json']} and {paths['markdown']}", file=sys.stderr)
