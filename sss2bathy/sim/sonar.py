@@ -30,7 +30,13 @@ from typing import Protocol
 
 import numpy as np
 
-from sss2bathy.geometry import arc_basis, check_rotations, head_plane_normal, vehicle_normal
+from sss2bathy.geometry import (
+    arc_basis,
+    check_rotations,
+    head_plane_normal,
+    incidence_cosine,
+    vehicle_normal,
+)
 from sss2bathy.sim.config import MaterialParams, SonarParams
 from sss2bathy.survey import (
     MASK_NO_HIT,
@@ -488,7 +494,7 @@ def _simulate_chunk(
 
     normals = np.asarray(surface.normals(pts, tri), dtype=np.float64)
     normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    cos_i = -np.einsum("ij,ij->i", normals, d)
+    cos_i = incidence_cosine(normals, pts, s[ping_k])
     incidence = np.arccos(np.clip(cos_i, -1.0, 1.0))
     material = np.asarray(surface.materials(pts), dtype=np.int64)
     sigma = backscatter(incidence, material, response) * surface.texture(pts)

@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 import torch
-from conftest import plane_grid, straight_line
 
 from sss2bathy.draping import drape_line
 from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
@@ -50,7 +49,7 @@ class _OneMaterial:
         return np.ones(len(points))
 
 
-def _line():
+def _line(straight_line):
     return straight_line(
         n_pings=6, n_bins=160, max_range=40.0, depth=-8.0, heading_deg=25.0,
         pitch_deg=3.0, roll_deg=5.0, start=(-5.0, 5.0), length=10.0,
@@ -62,8 +61,8 @@ def _closed_form_n_lat(R: np.ndarray, side: np.ndarray) -> np.ndarray:
     return head_plane_normal_from_gradient(g[0], g[1], R, side)[0]
 
 
-def test_draping_and_finder_agree_with_the_closed_form():
-    line = _line()
+def test_draping_and_finder_agree_with_the_closed_form(make_plane, make_line):
+    plane_grid, line = make_plane, _line(make_line)
     grid = plane_grid(A, B, C, x_range=(-60, 60), y_range=(-40, 70), cell=1.0)
     draped = drape_line(line, grid)
     p, s, b = np.nonzero(draped.mask == MASK_VALID)
@@ -83,8 +82,8 @@ def test_draping_and_finder_agree_with_the_closed_form():
     np.testing.assert_allclose(found, hits, atol=1e-3)  # float32 draped points
 
 
-def test_simulator_agrees_with_the_closed_form():
-    line = _line()
+def test_simulator_agrees_with_the_closed_form(make_plane, make_line):
+    plane_grid, line = make_plane, _line(make_line)
     mesh = plane_grid(A, B, C, x_range=(-60, 60), y_range=(-40, 70), cell=2.0).to_mesh()
     caster = RayCaster(mesh)
     sonar = SonarParams(
