@@ -17,7 +17,7 @@ Batches are dicts (``B`` = batch size, ``H`` = window pings, ``W`` = window bins
 
 * ``intensity [B,1,H,W] float32`` — normalised (:mod:`sss2bathy.data.normalize`) over the
   bins valid in the **sonar-only** mask (:func:`sss2bathy.data.masks.sonar_mask`, parameters
-  ``sonar_mask``), exactly as at inference (:mod:`sss2bathy.modules.predict`): the draped
+  ``sonar_mask``), exactly as at inference (:mod:`sss2bathy.data.cnn_normals`): the draped
   (MBES) mask only selects the pixels of the loss;
 * ``inputs [B,C,H,W] float32`` — the network's input channels ``input_channels``
   (:func:`sss2bathy.data.masks.input_channels`: ``intensity`` first, then optionally

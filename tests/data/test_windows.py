@@ -238,7 +238,7 @@ def test_datamodule_batches(survey_dir, tmp_path):
 def test_training_inputs_are_the_prediction_inputs(survey_dir, tmp_path):
     """Training windows hold exactly the inputs predict_normals builds from the sidescan
     alone (sonar-only normalisation, same channels); the draped mask only picks the loss."""
-    from sss2bathy.modules.predict import line_inputs
+    from sss2bathy.data.cnn_normals import line_inputs
 
     channels = ["intensity", "grazing", "range"]
     sonar_mask = {"shadow_threshold": 0.1}
