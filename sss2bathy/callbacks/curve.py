@@ -80,7 +80,7 @@ class MetricCurve(Callback):
             self._val_start = None
         if trainer.sanity_checking or not trainer.is_global_zero:
             return
-        metrics = _evaluation_metrics(trainer, pl_module)
+        metrics = evaluation_metrics(trainer, pl_module)
         if not metrics:
             return
         wall = now - self._start
@@ -98,7 +98,9 @@ class MetricCurve(Callback):
         write_curve(self.path, self.rows)
 
 
-def _evaluation_metrics(trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, float]:
+def evaluation_metrics(trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, float]:
+    """The ``val/*`` metrics of the current epoch's evaluation (module docstring); empty
+    when a module with ``latest_evaluation`` did not evaluate this epoch."""
     if hasattr(pl_module, "latest_evaluation"):
         ev = pl_module.latest_evaluation
         if ev is None or ev.epoch != trainer.current_epoch:
