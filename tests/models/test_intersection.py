@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation
-from sss2bathy.models.intersection import find_intersections
+from sss2bathy.models.intersection import FinderSettings, find_intersections
 from sss2bathy.models.siren import Siren
 
 BEAM = (0.0, math.radians(60.0))  # tilt 30 deg, beam width 60 deg
@@ -234,6 +234,68 @@ def test_finder_validates_inputs():
     for bad in (-0.5, math.nan):
         with pytest.raises(ValueError, match="scan_max_slope"):
             find_intersections(surface, s, R, r, side, BEAM, scan_max_slope=bad)
+
+
+@pytest.mark.parametrize(
+    "field, value, expected",
+    [
+        ("solver", "brent", "one of"),
+        ("max_iter", 0, "an integer >= 1 or None"),
+        ("max_iter", 2.5, "an integer >= 1 or None"),
+        ("tol_m", 0.0, "a positive tolerance in metres"),
+        ("tol_m", math.inf, "a positive tolerance in metres"),
+        ("gd_step", -0.01, "a positive step"),
+        ("warm_start", 2, "true or false"),
+        ("n_scan", 1, "an integer >= 2"),
+        ("scan_max_slope", -1.0, "a slope >= 0"),
+        ("scan_max_slope", math.nan, "a slope >= 0"),
+        ("warm_bracket_deg", 0.0, "a positive angle"),
+        ("chunk", 0, "an integer >= 1"),
+    ],
+)
+def test_finder_settings_name_the_field_expected_and_found(field, value, expected):
+    with pytest.raises(ValueError, match=rf"finder\.{field}: expected {expected}.*found {value!r}"):
+        FinderSettings(**{field: value})
+    with pytest.raises(ValueError, match=rf"finder\.{field}"):
+        FinderSettings.from_mapping({field: value})
+
+
+def test_finder_settings_are_the_one_source_of_defaults():
+    cfg = FinderSettings()
+    assert (cfg.solver, cfg.iterations, cfg.tol_m, cfg.warm_start) == ("secant", 32, 1e-3, True)
+    assert cfg.warm_bracket_rad == math.radians(0.5)
+    assert FinderSettings.from_mapping(None) == cfg == FinderSettings.from_mapping({})
+    assert FinderSettings.from_mapping(cfg) is cfg
+    newton = FinderSettings.from_mapping({"solver": "newton", "max_iter": 5})
+    assert (newton.solver, newton.iterations, newton.n_scan) == ("newton", 5, 16)
+    with pytest.raises(ValueError, match=r"finder: expected keys among .*found unknown \['tol'\]"):
+        FinderSettings.from_mapping({"tol": 1e-3})
+
+
+def test_find_intersections_takes_settings_and_overrides():
+    surface = Plane(-10.0, 0.05, -0.02)
+    sonar, R, r, side = _bins(4, 10.0, torch.linspace(12.0, 30.0, 10))
+    args = (surface, sonar, R, r, side, BEAM)
+    newton = FinderSettings(solver="newton", tol_m=1e-5)
+    by_settings = find_intersections(*args, settings=newton)
+    by_mapping = find_intersections(*args, settings={"solver": "newton", "tol_m": 1e-5})
+    by_keywords = find_intersections(*args, "newton", tol_m=1e-5)
+    for a, b in zip(by_settings, by_keywords, strict=True):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    for a, b in zip(by_settings, by_mapping, strict=True):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    assert by_settings[1].sum() > 20
+    # the keyword solver overrides the settings' solver; the secant evaluates no gradient
+    assert not torch.equal(find_intersections(*args, "secant", settings=newton)[2], by_settings[2])
+    # warm_start=False: theta0 is ignored, the solve is cold
+    theta0 = torch.where(by_settings[1], by_settings[0], torch.inf)
+    warm = find_intersections(*args, theta0=theta0, settings=newton)
+    cold = find_intersections(*args, theta0=theta0, settings=newton.replace(warm_start=False))
+    assert warm[2].sum() < by_settings[2].sum()
+    for a, b in zip(cold, by_settings, strict=True):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    with pytest.raises(ValueError, match="finder: expected keys among"):
+        find_intersections(*args, tolerance=1e-3)
 
 
 # ------------------------------------------------------------------------- cold scan
