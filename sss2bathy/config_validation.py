@@ -1,18 +1,32 @@
 """Start-up validation of composed configs: fail before any heavy work, naming the key.
 
-Each rule is ``(dotted key, predicate, expectation)``; a rule whose key is absent from the
-composed config (or null) is skipped (not every task has every group). Whole groups with a
-validator of their own are checked by it: a synthetic ``data.survey`` by
-:class:`~sss2bathy.sim.config.SyntheticSurveyConfig` (every key, sizes included), an xtf one
-by the importer's checks, ``data.drape`` by :class:`~sss2bathy.draping.DrapeConfig`.
+One system, two halves, both run by ``sss2bathy-train`` before any data is made:
+
+* the constructors validate their own arguments (``<argument>: expected ..., found ...``);
+  start-up instantiates datamodule, model, callbacks, loggers and trainer first
+  (:func:`sss2bathy.cli.train.instantiate_run`, data is made later in ``prepare_data`` /
+  ``setup``) and :func:`instantiate_group` turns such an error into a :class:`ConfigError`
+  naming the config key (``config key 'model.finder.tol_m': expected ..., found ...``).
+  Whole groups with a config class of their own are checked by constructing it here: a
+  synthetic ``data.survey`` (:class:`~sss2bathy.sim.config.SyntheticSurveyConfig`, every key,
+  test surveys included), ``data.drape`` (:class:`~sss2bathy.draping.DrapeConfig`),
+  ``data.sonar_mask``, an xtf survey by the importer's checks;
+* :data:`RULES`, ``(dotted key, predicate, expectation)``, for what no constructor sees:
+  top-level run keys (``seed``, ``deterministic``, ``guard.*``), keys of third-party
+  constructors (Lightning's trainer and checkpoints, torch's optimizers and schedulers), of
+  objects a module builds itself from a ``_partial_`` node (``model.net``, ``model.siren``,
+  ``model.loss``), keys whose constructor does not check them yet, and the cross-key rules
+  in :func:`validate_config`. A rule whose key is absent from the composed config (or null)
+  is skipped. Enumerations are imported from the module that owns them (:class:`_OneOf`).
+
 Checks that need the data (split names, window size vs the lines' pings) run in the data
-modules' ``setup`` and name the config key too. Stage code still validates its own
-arguments; these rules catch the common mistakes before data is generated.
+modules' ``setup`` and name the config key too.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -50,23 +64,44 @@ def _enum(*choices: Any) -> tuple[Callable[[Any], bool], str]:
     return one_of(*choices), f"one of {list(choices)}"
 
 
+class _OneOf:
+    """``v in <module>.<name>`` (a tuple, or a mapping's keys), imported on first use: the
+    table names where an enumeration lives instead of copying it."""
+
+    def __init__(self, module: str, name: str) -> None:
+        self.module, self.name = module, name
+
+    def choices(self) -> tuple:
+        import importlib
+
+        return tuple(getattr(importlib.import_module(self.module), self.name))
+
+    def __call__(self, v: Any) -> bool:
+        return v in self.choices()
+
+    def __str__(self) -> str:
+        return f"one of {list(self.choices())}"
+
+
+def _choices(module: str, name: str) -> tuple[Callable[[Any], bool], _OneOf]:
+    check = _OneOf(module, name)
+    return check, check
+
+
 def _gamma(v: Any) -> bool:
     return _num(lambda x: 0 < x <= 1)(v)
 
 
-RULES: list[tuple[str, Callable[[Any], bool], str]] = [
+RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("seed", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
     ("torch_threads", positive_int, "a positive integer or null"),
     ("trainer.max_epochs", lambda v: v == -1 or positive_int(v), "a positive integer or -1"),
-    ("data.batch_size", positive_int, "a positive integer"),
     ("data.batch_pings", positive_int, "a positive integer"),
     ("data.altimeter_points", positive_int, "a positive integer"),
     ("data.window_pings", positive_int, "a positive integer"),
     ("data.window_bins", positive_int, "a positive integer"),
-    ("data.overlap", fraction, "a fraction in [0, 1)"),
     ("data.min_valid_fraction", _num(lambda v: 0 <= v <= 1), "a fraction in [0, 1]"),
     ("data.val_fraction", fraction, "a fraction in [0, 1)"),
-    ("data.num_workers", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
     ("data.survey.terrain.cell_m", positive, "a positive number (m)"),
     ("data.survey.beam_width_deg", beam_width, "a value in (0, 180) degrees"),
     ("data.survey.tilt_deg", tilt, "a value in [-90, 90] degrees"),
@@ -81,17 +116,13 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("data.survey.plan.ping_rate_hz", positive, "a positive number (Hz)"),
     ("model.w_height", non_negative, "a number >= 0"),
     ("model.eval_cell_m", positive, "a positive number (m)"),
-    ("model.eval_every_n_epochs", positive_int, "a positive integer"),
-    ("model.finder.tol_m", positive, "a positive tolerance (m)"),
     ("model.sensor.shadow_threshold", non_negative, "a number >= 0"),
-    ("model.sensor.q", _num(lambda v: v >= 1), "an exponent >= 1"),
     ("model.optimizer.lr", positive, "a positive learning rate"),
     # run control (conf/train.yaml, callbacks, trainer)
     ("deterministic", boolean, "true or false"),
     ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
     ("callbacks.epoch_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
     ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
-    ("callbacks.nonfinite_guard.max_consecutive", positive_int, "a positive integer"),
     ("trainer.min_epochs", non_negative_int, "an integer >= 0"),
     ("trainer.check_val_every_n_epoch", positive_int, "a positive integer or null"),
     ("trainer.log_every_n_steps", positive_int, "a positive integer"),
@@ -99,9 +130,7 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("trainer.gradient_clip_val", non_negative, "a number >= 0 or null"),
     # data modules (conf/data)
     ("data.flip_augment", boolean, "true or false"),
-    ("data.normals", *_enum("gt", "cnn", "none")),
     ("data.need_intensity", boolean, "true or false"),
-    ("data.steps_per_epoch", positive_int, "a positive integer or null"),
     ("scale.siren.steps_per_epoch", positive_int, "a positive integer or null"),
     ("scale.siren.fast_steps_per_epoch", positive_int, "a positive integer"),
     ("data.z_margin", non_negative, "a fraction >= 0"),
@@ -110,15 +139,12 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("data.window.window_bins", positive_int, "a positive integer"),
     ("data.window.overlap", fraction, "a fraction in [0, 1)"),
     # the normal CNN (conf/model/normal_cnn.yaml, conf/loss)
-    ("model.net.in_channels", positive_int, "a positive integer"),
     ("model.net.base_width", positive_int, "a positive integer"),
     ("model.net.n_blocks", non_negative_int, "an integer >= 0"),
     ("model.net.outer_kernel", lambda v: positive_int(v) and v % 2 == 1, "an odd positive integer"),
-    ("model.image_every_n_epochs", non_negative_int, "an integer >= 0"),
-    ("model.n_images", non_negative_int, "an integer >= 0"),
     ("model.compile", boolean, "true or false"),
-    ("model.loss.kind", *_enum("normal_aware", "l1", "l2", "smooth_l1")),
-    ("model.loss.base", *_enum("l1", "l2", "smooth_l1")),
+    ("model.loss.kind", *_choices("sss2bathy.losses.normal", "KINDS")),
+    ("model.loss.base", *_choices("sss2bathy.losses.normal", "BASES")),
     ("model.loss.beta", positive, "a positive number"),
     ("model.loss.tv_across_track", non_negative, "a weight >= 0"),
     ("model.loss.tv_along_track", non_negative, "a weight >= 0"),
@@ -127,38 +153,18 @@ RULES: list[tuple[str, Callable[[Any], bool], str]] = [
     ("model.siren.hidden", positive_int, "a positive integer"),
     ("model.siren.n_layers", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
     ("model.siren.omega0", positive, "a positive number"),
-    ("model.siren.precision", *_enum("fp32", "bf16")),
+    ("model.siren.precision", *_choices("sss2bathy.models.siren", "PRECISIONS")),
     ("model.siren.chunk", positive_int, "a positive number of points or null"),
-    ("model.finder.solver", *_enum("newton", "secant", "gd", "bisection")),
-    (
-        "model.finder.scan_max_slope",
-        lambda v: isinstance(v, int | float) and not isinstance(v, bool) and v >= 0,
-        "a slope >= 0 (.inf = the plain angle scan)",
-    ),
-    ("model.finder.max_iter", positive_int, "a positive integer or null"),
-    ("model.finder.gd_step", positive, "a positive step"),
-    ("model.finder.n_scan", positive_int, "a positive integer"),
-    ("model.finder.warm_bracket_deg", positive, "a positive angle (degrees)"),
-    ("model.finder.chunk", positive_int, "a positive integer"),
-    ("model.finder.warm_start", boolean, "true or false"),
-    ("model.direct_fit", boolean, "true or false"),
-    ("model.direct_fit_points", positive_int, "a positive integer"),
     ("model.region_radius_m", positive, "a positive number (m) or null"),
-    ("model.sensor_lr", positive, "a positive learning rate or null"),
     ("model.encoding_lr", positive, "a positive learning rate or null"),
-    ("model.sensor.n_beam_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
-    ("model.sensor.n_gain_knots", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
-    ("model.sensor.reflectivity", *_enum("constant", "field")),
     ("model.sensor.tilt_deg", tilt, "a value in [-90, 90] degrees or null"),
     ("model.sensor.beam_width_deg", beam_width, "a value in (0, 180) degrees or null"),
-    ("model.sensor.near_range_cut_m", non_negative, "a number >= 0 (m)"),
-    ("model.sensor.init_scale", positive, "a positive number"),
     # real surveys (conf/data/survey/xtf.yaml) beyond the importer's own checks
     ("data.survey.frequency_hz", positive, "a positive frequency (Hz) or null"),
     ("data.survey.sound_speed_mps", positive, "a positive speed (m/s) or null"),
     ("data.survey.mbes_z_positive", *_enum("up", "down")),
     ("data.survey.mbes_statistic", *_enum("mean", "median")),
-    ("data.survey.mbes_crs_mismatch", *_enum("reproject", "error")),
+    ("data.survey.mbes_crs_mismatch", *_choices("sss2bathy.io.grids", "CRS_MISMATCH")),
     ("data.survey.missing_attitude", *_enum("error", "track")),
     ("data.survey.channel_pair", non_negative_int, "an integer >= 0"),
     ("data.survey.max_jump_m", positive, "a positive distance (m)"),
@@ -274,3 +280,60 @@ def validate_config(cfg: DictConfig) -> None:
             f"config key 'trainer.min_epochs': expected <= trainer.max_epochs ({hi}), found {lo}"
         )
     _validate_groups(cfg)
+
+
+# ------------------------------------------------------------------- constructor checks
+_ARGUMENT = re.compile(
+    r"^([A-Za-z_][\w]*(?:\[\d+\])?(?:\.[A-Za-z_][\w]*(?:\[\d+\])?)*): (.*)$", re.S
+)
+
+
+_FULL_KEY = re.compile(r"\nfull_key: (\S+)\s*$")
+
+
+def _root_cause(err: BaseException) -> tuple[BaseException, str | None]:
+    """The constructor's own error inside Hydra's ``InstantiationException`` wrappers, and
+    the config key of the innermost node Hydra was instantiating (its ``full_key``)."""
+    from hydra.errors import InstantiationException
+
+    full_key = None
+    while isinstance(err, InstantiationException) and err.__cause__ is not None:
+        match = _FULL_KEY.search(str(err))
+        if match:
+            full_key = match.group(1)
+        err = err.__cause__
+    return err, full_key
+
+
+def constructor_error(node: str, err: BaseException) -> ConfigError:
+    """A constructor's ``<argument>: expected ..., found ...`` as a :class:`ConfigError`
+    naming the config key ``<node>.<argument>``, ``node`` being the config node whose
+    ``_target_`` raised it: the constructor validated its own argument, this only says
+    where in the config it came from. An argument already spelled from the config root
+    (``data.survey.plan.n_test``) keeps its name; ``drape.rays_per_bin`` raised for the
+    ``data`` node becomes ``data.drape.rays_per_bin``."""
+    message = str(err)
+    match = _ARGUMENT.match(message)
+    if match is None:
+        return ConfigError(f"config node '{node}': {message}")
+    argument, rest = match.groups()
+    key = argument if argument.split(".")[0] in _ROOT_KEYS else f"{node}.{argument}"
+    return ConfigError(f"config key '{key}': {rest}")
+
+
+# first parts of a dotted argument that already name a key from the config root
+_ROOT_KEYS = ("data", "model", "trainer", "callbacks", "logger", "scale", "paths")
+
+
+def instantiate_group(group: str, build: Callable[[], Any]) -> Any:
+    """``build()`` (a group's instantiation), its constructors' ``ValueError`` as a
+    :class:`ConfigError` naming the config key (:func:`constructor_error`)."""
+    try:
+        return build()
+    except ConfigError:
+        raise
+    except Exception as err:  # Hydra wraps constructor errors in InstantiationException
+        cause, full_key = _root_cause(err)
+        if isinstance(cause, ValueError) and not isinstance(cause, ConfigError):
+            raise constructor_error(full_key or group, cause) from err
+        raise

@@ -74,35 +74,44 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict[str, Any]:
     return fit(cfg, run_dir).metrics
 
 
-def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
-    """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
-    modules without that attribute, the CNN's, always train on MBES)."""
+@dataclass
+class Run:
+    """What :func:`instantiate_run` builds from a composed config."""
+
+    datamodule: Any
+    model: Any
+    callbacks: list
+    loggers: list
+    trainer: Any
+
+
+def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
+    """Datamodule, model, callbacks, loggers and trainer of ``cfg``, before any heavy work.
+
+    The data modules make and load their data in ``prepare_data`` / ``setup``, so this runs
+    every constructor's own argument checks before any data is made; a constructor's
+    ``ValueError`` (``<argument>: expected ..., found ...``) becomes a
+    :class:`~sss2bathy.config_validation.ConfigError` naming the config key
+    (:func:`~sss2bathy.config_validation.instantiate_group`).
+    """
     import pytorch_lightning as pl
-    from pytorch_lightning.utilities.model_helpers import is_overridden
 
-    from sss2bathy.cli.instantiate import (
-        instantiate_callbacks,
-        instantiate_loggers,
-        resolve_ckpt_path,
-    )
-    from sss2bathy.config_validation import validate_config
+    from sss2bathy.cli.instantiate import instantiate_callbacks, instantiate_loggers
+    from sss2bathy.config_validation import instantiate_group
 
-    validate_config(cfg)
-    if cfg.get("torch_threads"):
-        import torch
-
-        torch.set_num_threads(int(cfg.torch_threads))
-    # seeds torch, numpy, Python and (via PL_SEED_WORKERS) data-loader workers; the data
-    # modules draw batches from their own generators seeded by data.seed (= seed)
-    pl.seed_everything(cfg.seed, workers=True)
     # deterministic=true: torch.use_deterministic_algorithms(True, warn_only=True) through
     # Lightning (which also sets cuDNN and cuBLAS up for it)
     determinism = {"deterministic": "warn"} if cfg.get("deterministic") else {}
-    datamodule = hydra.utils.instantiate(cfg.data, _recursive_=False)
-    model = hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial")
-    callbacks = instantiate_callbacks(cfg.get("callbacks"))
-    loggers = instantiate_loggers(cfg.get("logger"))
-    from sss2bathy.modules.curve import MetricCurve
+    datamodule = instantiate_group(
+        "data", lambda: hydra.utils.instantiate(cfg.data, _recursive_=False)
+    )
+    model = instantiate_group(
+        "model",
+        lambda: hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial"),
+    )
+    callbacks = instantiate_group("callbacks", lambda: instantiate_callbacks(cfg.get("callbacks")))
+    loggers = instantiate_group("logger", lambda: instantiate_loggers(cfg.get("logger")))
+    from sss2bathy.callbacks import MetricCurve
 
     for c in callbacks:
         if isinstance(c, MetricCurve) and c.dirpath is None and run_dir is not None:
@@ -111,13 +120,39 @@ def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
         # a learning-rate monitor has nothing to write to without a logger (and Lightning
         # refuses the combination): drop it rather than fail `logger=none` runs
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
-    trainer = hydra.utils.instantiate(
-        cfg.trainer,
-        callbacks=callbacks,
-        logger=loggers or False,
-        _convert_="partial",
-        **determinism,
+    trainer = instantiate_group(
+        "trainer",
+        lambda: hydra.utils.instantiate(
+            cfg.trainer,
+            callbacks=callbacks,
+            logger=loggers or False,
+            _convert_="partial",
+            **determinism,
+        ),
     )
+    return Run(datamodule, model, callbacks, loggers, trainer)
+
+
+def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
+    """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
+    modules without that attribute, the CNN's, always train on MBES)."""
+    import pytorch_lightning as pl
+    from pytorch_lightning.utilities.model_helpers import is_overridden
+
+    from sss2bathy.cli.instantiate import resolve_ckpt_path
+    from sss2bathy.config_validation import validate_config
+
+    # the cross-key rules, then every constructor's own checks: all before any data is made
+    validate_config(cfg)
+    if cfg.get("torch_threads"):
+        import torch
+
+        torch.set_num_threads(int(cfg.torch_threads))
+    # seeds torch, numpy, Python and (via PL_SEED_WORKERS) data-loader workers; the data
+    # modules draw batches from their own generators seeded by data.seed (= seed)
+    pl.seed_everything(cfg.seed, workers=True)
+    run = instantiate_run(cfg, run_dir)
+    datamodule, model, trainer = run.datamodule, run.model, run.trainer
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
     metrics: dict[str, Any] = {}
     if cfg.get("train", True):

@@ -1,13 +1,16 @@
 """Every config composes, every experiment resolves, and validation names the bad key."""
 
 import copy
+import tempfile
 from pathlib import Path
 
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf, open_dict
 
+from sss2bathy.cli.train import instantiate_run
 from sss2bathy.config_validation import ConfigError, validate_config
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -89,12 +92,29 @@ def test_window_larger_than_waterfall_rejected():
 
 # one composed config per experiment; each case sets one bad value (yaml-parsed) on a copy
 _COMPOSED: dict[tuple[str, ...], object] = {}
+_RUN_DIR = tempfile.mkdtemp(prefix="sss2bathy_compose_")
 
 
 def _composed(*overrides: str):
     if overrides not in _COMPOSED:
-        _COMPOSED[overrides] = _compose(overrides=["scale=tiny", *overrides])
+        with initialize_config_dir(str(CONF), version_base="1.3"):
+            cfg = compose(
+                "train",
+                overrides=["scale=tiny", "logger=none", f"paths.output_dir={_RUN_DIR}", *overrides],
+                return_hydra_config=True,
+            )
+        with open_dict(cfg):
+            cfg.hydra.runtime.output_dir = _RUN_DIR
+        _COMPOSED[overrides] = cfg
     return _COMPOSED[overrides]
+
+
+def _startup(cfg) -> None:
+    """What sss2bathy-train checks before any data is made: the cross-key table, then every
+    constructor's own checks (datamodule, model, callbacks, loggers, trainer)."""
+    validate_config(cfg)
+    HydraConfig.instance().set_config(cfg)
+    instantiate_run(cfg)
 
 
 XTF = ("experiment=cnn", "data/survey=xtf", "data.survey.files=/none", "data.test_surveys=null")
@@ -183,8 +203,6 @@ BAD_VALUES = [
     (("experiment=siren_gt_n2d",), "model.region_radius_m", "-5.0"),
     (("experiment=siren_gt_n2d",), "model.sensor_lr", "0"),
     (("experiment=siren_gt_n2d",), "model.scheduler.gamma", "1.5"),
-    (("experiment=siren_direct_fit",), "model.direct_fit", "sometimes"),
-    (("experiment=siren_direct_fit",), "model.direct_fit_points", "0"),
     (("experiment=siren_lambert",), "model.sensor.n_beam_knots", "1"),
     (("experiment=siren_lambert",), "model.sensor.n_gain_knots", "1"),
     (("experiment=siren_lambert",), "model.sensor.reflectivity", "map"),
@@ -200,13 +218,13 @@ BAD_VALUES = [
 @pytest.mark.parametrize("base, key, bad", BAD_VALUES, ids=[f"{k}={v}" for _, k, v in BAD_VALUES])
 def test_every_validated_key_rejects_a_bad_value(base, key, bad):
     cfg = copy.deepcopy(_composed(*base))
-    validate_config(cfg)  # the composed config itself is valid
+    _startup(cfg)  # the composed config itself is valid
     if key.startswith("data.test_surveys[0]."):
         OmegaConf.update(cfg.data.test_surveys[0], key.split("].", 1)[1], yaml.safe_load(bad))
     else:
         OmegaConf.update(cfg, key, yaml.safe_load(bad), force_add=True)
     with pytest.raises(ConfigError) as err:
-        validate_config(cfg)
+        _startup(cfg)
     assert f"'{key}'" in str(err.value)
     assert bad in str(err.value)
 
