@@ -1,0 +1,115 @@
+"""Paper-scale CPU study (sss2bathy.eval.paper_cpu_study): table, commands, a tiny run."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+import numpy as np
+import pytest
+
+from sss2bathy.eval.paper_cpu_study import (
+    fit_command,
+    mae_at,
+    prepare_commands,
+    run_study,
+    survey_status,
+    time_to_quality,
+    to_csv,
+    to_markdown,
+)
+
+
+def _curve(wall, mae):
+    return {
+        "wall_s": np.asarray(wall, float),
+        "val/mae": np.asarray(mae, float),
+        "step": np.arange(1, len(wall) + 1, dtype=float) * 10,
+    }
+
+
+def test_mae_at_is_the_latest_evaluation_and_nan_beyond_the_budget():
+    c = _curve([60, 120, 300], [1.0, 0.5, 0.2])
+    assert math.isnan(mae_at(c, 30, budget_s=600))  # no evaluation yet
+    assert mae_at(c, 120, budget_s=600) == 0.5
+    assert mae_at(c, 299, budget_s=600) == 0.5
+    assert mae_at(c, 600, budget_s=600) == 0.2  # finished early: holds its last map
+    assert math.isnan(mae_at(c, 601, budget_s=600))
+
+
+def test_time_to_quality_uses_the_methods_best_over_its_runs():
+    curves = {
+        ("siren_gt_n2d", "paper"): _curve([100, 200, 400], [0.5, 0.3, 0.2]),
+        ("siren_gt_n2d", "fast"): _curve([50, 150], [0.25, 0.21]),
+        ("siren_lambert", "fast"): _curve([60, 120], [0.9, 0.8]),
+    }
+    rows = {(r["method"], r["schedule"]): r for r in time_to_quality(curves, 600, 0.10, (1, 5))}
+    paper, fast = rows[("siren_gt_n2d", "paper")], rows[("siren_gt_n2d", "fast")]
+    assert paper["method_best_mae"] == fast["method_best_mae"] == 0.2
+    assert paper["t_within_s"] == 400  # 0.2 <= 0.22; 0.3 is not
+    assert fast["t_within_s"] == 150  # 0.21 <= 0.22; 0.25 is not
+    assert math.isnan(paper["mae_1min"]) and paper["mae_5min"] == 0.3  # first eval at 100 s
+    assert fast["mae_1min"] == 0.25
+    lam = rows[("siren_lambert", "fast")]
+    assert lam["method_best_mae"] == 0.8 and lam["t_within_s"] == 120  # 0.8 is its own best
+    assert lam["evaluations"] == 2 and lam["steps"] == 20 and lam["final_mae"] == 0.8
+
+
+def test_time_to_quality_refuses_bad_arguments():
+    with pytest.raises(ValueError, match="within: expected a fraction"):
+        time_to_quality({("siren_gt_n2d", "fast"): _curve([1], [1])}, 60, within=1.5)
+    with pytest.raises(ValueError, match="expected at least one evaluation"):
+        time_to_quality({("siren_gt_n2d", "fast"): _curve([], [])}, 60)
+
+
+def test_markdown_and_csv_tables():
+    curves = {("siren_gt_n2d", "paper"): _curve([100, 200], [0.5, 0.3])}
+    rows = time_to_quality(curves, 300, marks_min=(5,))
+    rows[0].update(process_wall_s=330.0, run="runs/siren_gt_n2d_paper")
+    prep = {"simulation": {"wall_s": 12.0, "inner_s": 8.0, "note": "generated"}, "draping": {}}
+    meta = {"scale": "paper", "survey": "synthetic_d1_paper", "command": "x",
+            "budget_s": 300, "evals_per_epoch": 4, "threads": 2}  # fmt: skip
+    md = to_markdown(rows, prep, meta)
+    assert "| SIREN-GT-N2d | paper | 0.3000 | 3.33 | 0.3000 | 0.3000 | 2 | 20 | 3.33 |" in md
+    assert "| simulation | 12.0 | 8.0 | generated |" in md
+    parsed = list(csv.DictReader(io.StringIO(to_csv(rows))))
+    assert parsed[0]["method"] == "siren_gt_n2d" and float(parsed[0]["mae_5min"]) == 0.3
+    assert parsed[0]["run"] == "runs/siren_gt_n2d_paper"
+
+
+def test_commands(tmp_path):
+    cmd = fit_command("siren_lambert", "fast", "paper", tmp_path, tmp_path / "r", 1200, 4, 2)
+    assert "experiment=siren_lambert" in cmd and "siren_schedule=fast" in cmd
+    assert "++trainer.max_time={seconds:1200}" in cmd
+    assert "++trainer.val_check_interval=0.25" in cmd and "torch_threads=2" in cmd
+    with pytest.raises(ValueError, match="schedule: expected one of"):
+        fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
+    with pytest.raises(ValueError, match="method: expected one of"):
+        fit_command("cnn", "fast", "paper", tmp_path, tmp_path, 60)
+    prep = prepare_commands("tiny", tmp_path, tmp_path)
+    assert "drape=false" in prep["simulation"] and "drape=true" in prep["draping"]
+
+
+def test_survey_status_is_a_dry_compose(tmp_path):
+    status = survey_status("tiny", tmp_path)
+    assert status["name"] == "synthetic_d1_tiny" and len(status["config_hash"]) == 16
+    assert status["problem"] is not None  # nothing there; nothing was made either
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_tiny_study_end_to_end(tmp_path):
+    rows = run_study(
+        tmp_path / "out", scale="tiny", budget_min=0.1, data_dir=tmp_path / "data",
+        methods=["siren_gt_n2d"], schedules=["fast"], threads=1, marks_min=(0.05,),
+    )  # fmt: skip
+    assert len(rows) == 1
+    row = rows[0]
+    assert 0 < row["best_mae"] < 2 and row["evaluations"] >= 2
+    assert math.isfinite(row["t_within_s"]) and row["t_within_s"] <= row["fit_wall_s"]
+    out = tmp_path / "out"
+    for name in ("paper_cpu_study.md", "paper_cpu_study.csv", "paper_cpu_study.png"):
+        assert (out / name).is_file()
+    assert (out / "runs" / "siren_gt_n2d_fast" / "metric_curve.csv").is_file()
+    assert "| simulation |" in (out / "paper_cpu_study.md").read_text()
