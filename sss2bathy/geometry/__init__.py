@@ -17,6 +17,7 @@ from sss2bathy.geometry.frames import (
 )
 from sss2bathy.geometry.normals import (
     grazing_angle,
+    head_plane_components,
     head_plane_normal,
     head_plane_normal_from_gradient,
     head_plane_unit,
@@ -37,6 +38,7 @@ __all__ = [
     "rotation_to_attitude",
     "side_sign",
     "grazing_angle",
+    "head_plane_components",
     "head_plane_normal",
     "head_plane_normal_from_gradient",
     "head_plane_unit",

@@ -62,6 +62,19 @@ def head_plane_normal(
 
 
 @numpy_compatible
+def head_plane_components(
+    normal_world: torch.Tensor, u: torch.Tensor, w: torch.Tensor, eps: float = 1e-12
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 2-3 through the head plane's world axes: ``normalize(N . u, N . w)``.
+
+    With ``(u, w)`` of :func:`~sss2bathy.geometry.arc_basis` (``sigma R e_y``, ``R e_z``)
+    this is :func:`head_plane_normal` of ``R^T N`` without forming ``R^T N``: cheaper for
+    many normals that share few rotations. Shapes ``(..., 3)`` each; returns ``(...)``.
+    """
+    return head_plane_unit((normal_world * u).sum(-1), (normal_world * w).sum(-1), eps)
+
+
+@numpy_compatible
 def head_plane_normal_from_gradient(
     dzdx: torch.Tensor, dzdy: torch.Tensor, R: torch.Tensor, side: torch.Tensor | int
 ) -> tuple[torch.Tensor, torch.Tensor]:

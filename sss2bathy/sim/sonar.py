@@ -33,9 +33,8 @@ import numpy as np
 from sss2bathy.geometry import (
     arc_basis,
     check_rotations,
-    head_plane_normal,
+    head_plane_components,
     incidence_cosine,
-    vehicle_normal,
 )
 from sss2bathy.sim.config import MaterialParams, SonarParams
 from sss2bathy.survey import (
@@ -552,7 +551,8 @@ def _bin_truth(
     ``points``: the same mean of the hit points; the dominant (most energy) material; and
     the geometric fraction of the bin's rays inside the nominal beam.
     """
-    hit_lat, hit_up = head_plane_normal(vehicle_normal(normals, R[ps // 2]), ps % 2)
+    u, w = arc_basis(R[:, None], _SIDES)  # (P, 2, 3) each
+    hit_lat, hit_up = head_plane_components(normals, u.reshape(-1, 3)[ps], w.reshape(-1, 3)[ps])
     count = np.bincount(key, minlength=n_key)
     has_hit = count > 0
     e_sum = np.bincount(key, energy, n_key)

@@ -154,6 +154,14 @@ def test_normals_golden(device, dtype):
     expected = slope / math.sqrt(1 + slope**2)
     _close(n_lat, [expected, -expected], dtype)
     _close(n_up, [1 / math.sqrt(1 + slope**2)] * 2, dtype)
+    # the same through the arc basis, for any attitude
+    R = _attitudes(device, dtype)
+    side = torch.tensor([0, 1, 0, 1, 1, 0], device=device)
+    via_vehicle = G.head_plane_normal(G.vehicle_normal(N, R), side)
+    via_basis = G.head_plane_components(N, *G.arc_basis(R, side))
+    _on(via_basis[0], device, dtype)
+    for a, b in zip(via_basis, via_vehicle, strict=True):
+        _close(a, b, dtype)
 
 
 def test_incidence_golden(device, dtype):
@@ -207,6 +215,7 @@ def test_numpy_form_equals_torch_form_bit_for_bit():
         "vehicle_normal": (G.vehicle_normal, (N, R)),
         "head_plane_unit": (G.head_plane_unit, (grad[:, 0], grad[:, 1])),
         "head_plane_normal": (G.head_plane_normal, (G.vehicle_normal(N, R), side)),
+        "head_plane_components": (G.head_plane_components, (N, *G.arc_basis(R, side))),
         "head_plane_normal_from_gradient": (
             G.head_plane_normal_from_gradient,
             (grad[:, 0], grad[:, 1], R, side),
