@@ -36,7 +36,12 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.eval.cnn_table import cnn_table_csv, cnn_table_markdown, constant_rows_from_metrics
+from sss2bathy.eval.cnn_table import (
+    cnn_table_csv,
+    cnn_table_markdown,
+    constant_rows_from_metrics,
+    table_rows_from_metrics,
+)
 from sss2bathy.eval.paper_numbers import PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
@@ -460,7 +465,6 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
         "real data, so they orient, they do not compare like for like.",
         "",
     ]
-    from sss2bathy.modules.normal_cnn import table_rows_from_metrics
 
     cnn = runs.get("cnn")
     rows = table_rows_from_metrics(cnn.metrics) if cnn else {}

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import sss2bathy.draping.cache as cache_mod
+from benchmarks.draping import count_rays, raw_cast, record_rays
 from sss2bathy.draping import DrapeConfig, DrapeSurface, drape_key, drape_line
-from sss2bathy.draping.benchmark import count_rays, raw_cast, record_rays
 from sss2bathy.geometry import attitude_to_rotation
 from sss2bathy.survey import MASK_VALID, BathyGrid, SidescanLine, Survey
 

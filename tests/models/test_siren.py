@@ -185,7 +185,7 @@ def _paper_siren(precision: str) -> Siren:
 
 def test_bf16_gradient_pass_error_at_paper_size():
     """bf16 hidden layers of the training gradient pass: ~1 % on slopes, < 5e-3 on n_lat."""
-    from sss2bathy.eval.bench import MatmulRecorder
+    from benchmarks.matmul import MatmulRecorder
 
     lo, hi = torch.tensor([-175.0, -150.0]), torch.tensor([175.0, 150.0])
     xy = lo + (hi - lo) * torch.rand(4096, 2, generator=torch.Generator().manual_seed(3))
