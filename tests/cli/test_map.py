@@ -83,11 +83,9 @@ def tiny_xtf(tmp_path_factory) -> tuple[Path, str]:
     from sss2bathy.io.xtf import write_xtf
     from sss2bathy.sim import config as sim_config
     from sss2bathy.sim import generate
+    from sss2bathy.utils.config import survey_preset
 
-    cfg = OmegaConf.merge(
-        OmegaConf.load(CONF / "data/survey/synthetic_d1.yaml"),
-        OmegaConf.load(CONF / "survey_scale/synthetic_d1_tiny.yaml"),
-    )
+    cfg = OmegaConf.create(survey_preset("synthetic_d1", "tiny", CONF))
     cfg.name = "sim_tiny"
     survey, _ = generate.generate_survey(
         sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))

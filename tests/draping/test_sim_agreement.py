@@ -15,15 +15,13 @@ from omegaconf import OmegaConf
 from sss2bathy.draping import drape_survey
 from sss2bathy.sim.prepare import prepare_synthetic
 from sss2bathy.survey import MASK_VALID, Survey
+from sss2bathy.utils.config import survey_preset
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
 def _tiny_d1() -> dict:
-    base = OmegaConf.load(CONF / "data" / "survey" / "synthetic_d1.yaml")
-    tiny = OmegaConf.load(CONF / "survey_scale" / "synthetic_d1_tiny.yaml")
-    root = OmegaConf.create({"scale": {"name": "tiny"}, "data": {"survey": base}})
-    root.data.survey = OmegaConf.merge(root.data.survey, tiny)
+    root = OmegaConf.create({"data": {"survey": survey_preset("synthetic_d1", "tiny", CONF)}})
     root.data.survey.terrain.mbes_noise_m = 0.0
     root.data.survey.name = "agreement_d1_tiny"
     return OmegaConf.to_container(root.data.survey, resolve=True)

@@ -20,11 +20,9 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 def sim_survey():
     generate = pytest.importorskip("sss2bathy.sim.generate")
     sim_config = pytest.importorskip("sss2bathy.sim.config")
-    base = CONF / "data" / "survey" / "synthetic_d1.yaml"
-    tiny = CONF / "survey_scale" / "synthetic_d1_tiny.yaml"
-    if not (base.is_file() and tiny.is_file()):
-        pytest.skip("synthetic_d1 tiny configs not available")
-    cfg = OmegaConf.merge(OmegaConf.load(base), OmegaConf.load(tiny))
+    from sss2bathy.utils.config import survey_preset
+
+    cfg = OmegaConf.create(survey_preset("synthetic_d1", "tiny", CONF))
     cfg.name = "sim_tiny"
     config = sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
     survey, _ = generate.generate_survey(config)

@@ -645,7 +645,7 @@ def test_experiment_values():
     for name in ("d2_siren_cnn_n2d", "d2_siren_lambert"):
         cfg = _compose(f"experiment={name}", "scale=demo")
         assert cfg.data.survey.name == "synthetic_d2_demo"
-        assert cfg.data.survey.plan.n_test == 6  # survey_scale/synthetic_d2_demo applied
+        assert cfg.data.survey.plan.n_test == 6  # scale/demo.yaml survey.synthetic_d2 applied
         assert (cfg.data.sidescan_split, cfg.data.altimeter_split) == ("all", "all")
         base = _compose("experiment=siren_cnn_n2d")
         assert cfg.model.siren.hidden * 2 == base.model.siren.hidden

@@ -14,16 +14,14 @@ from sss2bathy.geometry import attitude_to_rotation
 from sss2bathy.sim.config import SonarParams
 from sss2bathy.sim.sonar import MaterialResponse, MeshSurface, RayCaster
 from sss2bathy.survey import BathyGrid
+from sss2bathy.utils.config import survey_preset
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
 def preset(survey: str, scale: str, **overrides) -> dict:
     """Plain ``data.survey`` dict of a preset at a scale (as Hydra composes it)."""
-    base = OmegaConf.load(CONF / "data" / "survey" / f"{survey}.yaml")
-    sized = OmegaConf.load(CONF / "survey_scale" / f"{survey}_{scale}.yaml")
-    root = OmegaConf.create({"scale": {"name": scale}, "data": {"survey": base}})
-    root.data.survey = OmegaConf.merge(root.data.survey, sized)
+    root = OmegaConf.create({"data": {"survey": survey_preset(survey, scale, CONF)}})
     for dotted, value in overrides.items():
         OmegaConf.update(root.data.survey, dotted.replace("__", "."), value, force_add=True)
     return OmegaConf.to_container(root.data.survey, resolve=True)
