@@ -158,11 +158,6 @@ def _only_run_folder(root: Path) -> Path:
     return run
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs conf/trainer/default.yaml `default_root_dir: ${paths.run_dir}` (today the "
-    "outputs folder: the SIREN map and Lightning's checkpoints land there without a logger)",
-)
 def test_a_run_without_logger_writes_into_its_own_run_folder(tiny_root, tiny_data):
     proc = _train(tiny_root, tiny_data, ["logger=none"])
     assert proc.returncode == 0, proc.stderr[-3000:]
