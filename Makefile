@@ -113,7 +113,7 @@ sweep-siren: install ## Optuna search of a SIREN fit (w_H, lr, omega0, lr decay)
 	$(BIN)/sss2bathy-train -m experiment=$(EXPERIMENT) hparams_search=siren_optuna scale=$(SCALE) $(ARGS)
 
 bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
-	$(BIN)/python -m sss2bathy.cli.bench $(ARGS)
+	$(BIN)/python -m benchmarks $(ARGS)
 
 STUDY := outputs/study/$(SCALE)
 STUDY_TRAIN := $(BIN)/sss2bathy-train experiment=siren_cnn_n2d scale=$(SCALE) model.log_images=false
