@@ -28,6 +28,7 @@ from sss2bathy.losses import NormalLoss
 from sss2bathy.models.normal_cnn import NormalResNet
 from sss2bathy.modules.normal_cnn import NormalCNNModule
 from sss2bathy.survey import MASK_SHADOW, MASK_VALID, MASK_WATER_COLUMN, SidescanLine, Survey
+from sss2bathy.utils.atomic import file_sha256, stable_hash
 
 
 def test_stitch_reconstructs_waterfall_exactly():
@@ -273,3 +274,31 @@ def test_resolve_cnn_checkpoint(tmp_path):
         resolve_cnn_checkpoint("latest", None)
     with pytest.raises(ValueError, match=r"scale=paper .*\['None'\]"):
         resolve_cnn_checkpoint("latest", tmp_path / "runs", "paper")
+
+
+def test_bf16_inference_is_close_to_fp32_and_cached_apart(checkpoint, tmp_path):
+    path, net = checkpoint
+    intensity = np.random.default_rng(2).normal(size=(24, 2, 16)).astype(np.float32)
+    fp32 = predict_waterfall(net, intensity, (8, 16), 0.75, batch_size=4)
+    bf16 = predict_waterfall(net, intensity, (8, 16), 0.75, batch_size=4, precision="bf16")
+    assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32)  # bf16 did run
+    np.testing.assert_allclose(bf16, fp32, atol=0.03)  # bfloat16: 8-bit mantissa
+    with pytest.raises(ValueError, match=r"precision: expected one of \['fp32', 'bf16'\]"):
+        predict_waterfall(net, intensity, (8, 16), 0.75, precision="fp16")
+
+    survey = Survey(name="tiny", lines=[make_line("a", 30, 20, 0)])
+    window_cfg = {"window_pings": 8, "window_bins": 12, "overlap": 0.75, "batch_size": 4}
+    a32 = predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu")["a"][0]
+    a16 = predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", "bf16")["a"][0]
+    keys = sorted(p.name for p in (tmp_path / "predictions").iterdir())
+    spec = cnn_normals.checkpoint_input_spec(path)
+    fp32_key = stable_hash(
+        {"version": cnn_normals.CACHE_VERSION, "ckpt": file_sha256(path), "window": [8, 12, 0.75],
+         "channels": list(spec["channels"]), "sonar_mask": spec["sonar_mask"]}
+    )  # fmt: skip
+    assert len(keys) == 2 and fp32_key in keys  # a cache per precision; fp32's key unchanged
+    ok = np.isfinite(a32)
+    np.testing.assert_array_equal(ok, np.isfinite(a16))
+    np.testing.assert_allclose(a16[ok], a32[ok], atol=0.03)
+    with pytest.raises(ValueError, match="precision: expected one of"):
+        predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", "half")
