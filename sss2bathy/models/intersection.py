@@ -266,7 +266,6 @@ def find_intersections(
     theta0: torch.Tensor | None = None,
     *,
     settings: FinderSettings | Mapping[str, Any] | None = None,
-    warm_bracket_rad: float | None = None,
     **overrides: Any,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Depression angle where each bin's isotemporal arc crosses ``surface``.
@@ -282,8 +281,6 @@ def find_intersections(
         theta0: ``(N,)`` warm-start angles (rad), NaN where unknown; ``None`` = cold
             (ignored when ``settings.warm_start`` is false).
         settings: :class:`FinderSettings` (or a mapping of its fields); ``None``: defaults.
-        warm_bracket_rad: overrides the warm-start bracket's half-width in radians
-            (instead of ``settings.warm_bracket_deg``).
         **overrides: fields of :class:`FinderSettings` that replace those of ``settings``
             (``max_iter``, ``tol_m``, ``gd_step``, ``n_scan``, ``scan_max_slope``, ...).
 
@@ -295,10 +292,6 @@ def find_intersections(
         overrides["solver"] = solver
     cfg = FinderSettings.from_mapping(settings).replace(**overrides)
     lo, hi = _check_inputs(sonar, R, range_m, side, theta_limits, theta0)
-    if warm_bracket_rad is None:
-        warm_bracket_rad = cfg.warm_bracket_rad
-    elif not (_is_number(warm_bracket_rad) and 0 < warm_bracket_rad < math.inf):
-        raise ValueError(f"warm_bracket_rad: expected a positive angle, found {warm_bracket_rad}")
     if not cfg.warm_start:
         theta0 = None
     arcs = _Arcs(sonar, R, range_m, side)
@@ -314,7 +307,7 @@ def find_intersections(
         cfg.solver,
         cfg.n_scan,
         float(cfg.scan_max_slope),
-        warm_bracket_rad,
+        cfg.warm_bracket_rad,
         cfg.tol_m,
         cfg.iterations,
     )
