@@ -3,6 +3,8 @@ added by a module's ``configure_callbacks``).
 
 * :mod:`~sss2bathy.callbacks.guard`: non-finite step guard, global RNG state in checkpoints;
 * :mod:`~sss2bathy.callbacks.curve`: ``metric_curve.csv`` (metric against time);
+* :mod:`~sss2bathy.callbacks.hparams`: the run's HPARAMS record (identity, parameters,
+  final metrics);
 * :mod:`~sss2bathy.callbacks.images`: TensorBoard images (CNN windows, SIREN maps);
 * :mod:`~sss2bathy.callbacks.lambert`: the Lambertian sensor's learned curves and waterfall;
 * :mod:`~sss2bathy.callbacks.writers`: the CNN table and bias files, the SIREN map export.
@@ -19,6 +21,7 @@ from sss2bathy.callbacks.guard import (
     global_rng_state,
     set_global_rng_state,
 )
+from sss2bathy.callbacks.hparams import RunHparams
 from sss2bathy.callbacks.images import NormalImageLogger, SirenMapImages, render_window_panel
 from sss2bathy.callbacks.lambert import LambertCurvesLogger
 from sss2bathy.callbacks.writers import CNNTableWriter, SirenMapExport
@@ -31,6 +34,7 @@ __all__ = [
     "NonFiniteGuard",
     "NonFiniteTrainingError",
     "NormalImageLogger",
+    "RunHparams",
     "SirenMapExport",
     "SirenMapImages",
     "global_rng_state",

@@ -2,9 +2,10 @@
 
 * :class:`CNNTableWriter`: after testing, the Table-2-style CNN table with constant rows and
   the bias files (:mod:`sss2bathy.eval.cnn_table`);
-* :class:`SirenMapExport`: at the end of a SIREN fit, the final map (``map.tif``,
-  ``map.npz``, ``metrics.json``, PNGs; :func:`sss2bathy.eval.maps.save_map_outputs`) and the
-  hyper-parameters with the final metrics for the loggers.
+* :class:`SirenMapExport`: at the end of a SIREN's training, the final map (``map.tif``,
+  ``map.npz``, ``metrics.json``, PNGs; :func:`sss2bathy.eval.maps.save_map_outputs`); its
+  metrics are the module's ``final_metrics``, which :class:`~sss2bathy.callbacks.RunHparams`
+  logs with the hparams.
 """
 
 from __future__ import annotations
@@ -174,10 +175,10 @@ class CNNTableWriter(pl.Callback):
 
 
 class SirenMapExport(pl.Callback):
-    """At the end of a SIREN fit (rank 0): the module's final map
+    """At the end of a SIREN's training (rank 0, ``on_train_end``: before every callback's
+    ``on_fit_end``): the module's final map
     (:meth:`~sss2bathy.modules.siren.SirenModule.final_map`) written by
-    :func:`~sss2bathy.eval.maps.save_map_outputs` into ``out_dir``, and the module's
-    ``hparams_for_log()`` logged with the final metrics to every logger.
+    :func:`~sss2bathy.eval.maps.save_map_outputs` into ``out_dir``.
 
     Args:
         out_dir: the folder; ``None`` = the first logger's ``save_dir`` (the Hydra run
@@ -196,7 +197,7 @@ class SirenMapExport(pl.Callback):
             return Path(logger.save_dir)
         return Path(trainer.default_root_dir)
 
-    def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if not trainer.is_global_zero:
             return
         final = pl_module.final_map()
@@ -216,8 +217,6 @@ class SirenMapExport(pl.Callback):
             altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
         )
         log.info("SIREN map written to %s (%s)", self.paths["map_tif"], dict(final.metrics))
-        for logger in trainer.loggers:
-            logger.log_hyperparams(pl_module.hparams_for_log(), metrics=summary)
 
 
 __all__ = ["CNNTableWriter", "SirenMapExport"]

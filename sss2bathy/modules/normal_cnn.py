@@ -24,6 +24,7 @@ from torch import nn
 # re-exported for the targets of older configs and eval/report.py (until they name
 # sss2bathy.callbacks and sss2bathy.eval.cnn_table)
 from sss2bathy.callbacks import CNNTableWriter, NormalImageLogger, render_window_panel
+from sss2bathy.callbacks.hparams import flatten
 from sss2bathy.eval.cnn_table import table_rows_from_metrics
 from sss2bathy.losses.normal import NormalLoss
 from sss2bathy.metrics.normal import NormalMetrics
@@ -222,34 +223,31 @@ class NormalCNNModule(pl.LightningModule):
             return [NormalImageLogger(self.hparams.image_every_n_epochs, self.hparams.n_images)]
         return []
 
-    # ----------------------------------------------------------------- hparams
-    def _final_metrics(self) -> dict[str, float]:
-        out = {}
+    # ----------------------------------------------------------------- results
+    def record_final_metrics(self) -> None:
+        """Keep the ``val/*`` and ``test/*`` callback metrics in :attr:`final_metrics` (a test
+        replaces ``trainer.callback_metrics``: the fit's validation values stay)."""
         for key, value in self.trainer.callback_metrics.items():
             if key.startswith(("val/", "test/")):
-                out[key] = float(value)
-        return out
+                self.final_metrics[key] = float(value)
 
-    def _log_hparams_with_metrics(self) -> None:
-        # test runs replace trainer.callback_metrics: keep the validation values of the fit
-        self.final_metrics.update(self._final_metrics())
+    def hparams_for_log(self) -> dict[str, Any]:
+        """The module's and the datamodule's hyper-parameters, flattened (``model/...``,
+        ``data/...``), for :class:`~sss2bathy.callbacks.RunHparams`."""
         params: dict[str, Any] = {"model": dict(self.hparams)}
         dm = getattr(self.trainer, "datamodule", None)
         if dm is not None and getattr(dm, "hparams", None):
             params["data"] = dict(dm.hparams)
-        for logger in self.loggers:
-            logger.log_hyperparams(params, metrics=self.final_metrics)
+        return flatten(params)
 
     def on_fit_start(self) -> None:
         self.final_metrics = {}
 
     def on_fit_end(self) -> None:
-        """hparams with the last validation metrics (HPARAMS tab of a run without test)."""
-        self._log_hparams_with_metrics()
+        self.record_final_metrics()
 
     def on_test_end(self) -> None:
-        """hparams with validation and test metrics (overrides the fit-end record)."""
-        self._log_hparams_with_metrics()
+        self.record_final_metrics()
 
 
 __all__ = [

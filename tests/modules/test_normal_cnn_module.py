@@ -11,9 +11,10 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from pytorch_lightning.loggers import TensorBoardLogger
+from tensorboard.plugins.hparams import metadata as hp_meta
 from torch.utils.data import DataLoader, Dataset
 
-from sss2bathy.callbacks import CNNTableWriter, render_window_panel
+from sss2bathy.callbacks import CNNTableWriter, RunHparams, render_window_panel
 from sss2bathy.cli._common import config_dir
 from sss2bathy.eval.cnn_table import table_rows_from_metrics, write_cnn_table
 from sss2bathy.eval.paper_numbers import PAPER_LABEL
@@ -112,16 +113,6 @@ def test_fast_dev_run_from_composed_config_logs_every_key():
     assert f"test/{TEST_NAMES[1]}/delta1" in model.final_metrics
 
 
-class RecordingTensorBoard(TensorBoardLogger):
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.hparam_calls: list[tuple[dict, dict]] = []
-
-    def log_hyperparams(self, params, metrics=None, step=None) -> None:
-        self.hparam_calls.append((params, dict(metrics or {})))
-        super().log_hyperparams(params, metrics, step)
-
-
 def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -133,13 +124,14 @@ def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
         image_every_n_epochs=1,
         n_images=2,
     )
-    logger = RecordingTensorBoard(tmp_path, name="tb", version="", default_hp_metric=False)
+    logger = TensorBoardLogger(tmp_path, name="tb", version="", default_hp_metric=False)
     table = CNNTableWriter(tmp_path / "run")
+    record = RunHparams(run={"experiment": "cnn", "seed": 0}, overrides=["seed=0"])
     trainer = pl.Trainer(
         max_epochs=2,
         accelerator="cpu",
         logger=logger,
-        callbacks=[table],
+        callbacks=[table, record],
         enable_checkpointing=False,
         enable_progress_bar=False,
         enable_model_summary=False,
@@ -158,11 +150,17 @@ def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
     assert len(events.Images("val_images/window_0")) == 2  # every epoch
     assert any(tag == "train/loss_na_epoch" for tag in events.Tags()["scalars"])
 
-    params, metrics = logger.hparam_calls[-1]
-    assert params["model"]["net_config"]["base_width"] == 4
-    assert params["model"]["loss"]["kind"] == "normal_aware"
-    assert "val/mae" in metrics and f"test/{TEST_NAMES[0]}/mae" in metrics
-    assert "val/mae" in logger.hparam_calls[0][1]  # fit end: validation metrics
+    # one hparams session, no experiment summary (HPARAMS builds its columns from all runs)
+    content = events.PluginTagToContent(hp_meta.PLUGIN_NAME)
+    assert hp_meta.EXPERIMENT_TAG not in content
+    start = hp_meta.parse_session_start_info_plugin_data(content[hp_meta.SESSION_START_INFO_TAG])
+    assert start.hparams["model/net_config/base_width"].number_value == 4
+    assert start.hparams["model/loss/kind"].string_value == "normal_aware"
+    assert start.hparams["run/experiment"].string_value == "cnn"
+    assert start.hparams["run/overrides"].string_value == "seed=0"
+    assert start.hparams["run/module"].string_value == "NormalCNNModule"
+    scalars = events.Tags()["scalars"]
+    assert "val/mae" in scalars and f"test/{TEST_NAMES[0]}/mae" in scalars
 
     ckpt_path = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt_path)
@@ -231,13 +229,13 @@ def test_cnn_experiment_composes_with_loss_override(loss):
             overrides=["experiment=cnn", "scale=tiny", "debug=fast", f"loss@model.loss={loss}"],
         )
     assert cfg.task_name == "cnn" and cfg.model.loss.kind == loss
-    assert cfg.model.net.base_width == cfg.cnn_scale.tiny.base_width
+    assert cfg.model.net.base_width == cfg.scale.cnn.base_width
     assert cfg.trainer.max_epochs == cfg.model.scheduler.total_iters == 1
     assert (
         [s.name for s in cfg.data.test_surveys]
         == [
-            cfg.cnn_test_surveys.tiny.name,
-            cfg.cnn_test_surveys_d3.tiny.name,
+            cfg.cnn_test_surveys.synthetic_d2.name,
+            cfg.cnn_test_surveys.synthetic_d3.name,
         ]
         == ["synthetic_d2_tiny", "synthetic_d3_tiny"]
     )
