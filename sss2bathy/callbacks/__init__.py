@@ -7,7 +7,8 @@ added by a module's ``configure_callbacks``).
   final metrics);
 * :mod:`~sss2bathy.callbacks.images`: TensorBoard images (CNN windows, SIREN maps);
 * :mod:`~sss2bathy.callbacks.lambert`: the Lambertian sensor's learned curves and waterfall;
-* :mod:`~sss2bathy.callbacks.writers`: the CNN table and bias files, the SIREN map export.
+* :mod:`~sss2bathy.callbacks.writers`: the CNN table and bias files, the SIREN map export,
+  the full-name test metrics table.
 
 Callbacks read what a module exposes (``latest_evaluation``, ``final_map()``,
 ``sidescan_geometry()``, ``test_set_name()``) and import nothing from ``modules``.
@@ -24,7 +25,12 @@ from sss2bathy.callbacks.guard import (
 from sss2bathy.callbacks.hparams import RunHparams
 from sss2bathy.callbacks.images import NormalImageLogger, SirenMapImages, render_window_panel
 from sss2bathy.callbacks.lambert import LambertCurvesLogger
-from sss2bathy.callbacks.writers import CNNTableWriter, SirenMapExport
+from sss2bathy.callbacks.writers import (
+    CNNTableWriter,
+    SirenMapExport,
+    MetricsTableLogger,
+    metrics_table,
+)
 
 __all__ = [
     "CNNTableWriter",
@@ -37,7 +43,9 @@ __all__ = [
     "RunHparams",
     "SirenMapExport",
     "SirenMapImages",
+    "MetricsTableLogger",
     "global_rng_state",
+    "metrics_table",
     "read_curve",
     "render_window_panel",
     "set_global_rng_state",

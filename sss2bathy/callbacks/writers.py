@@ -219,4 +219,43 @@ class SirenMapExport(pl.Callback):
         log.info("SIREN map written to %s (%s)", self.paths["map_tif"], dict(final.metrics))
 
 
-__all__ = ["CNNTableWriter", "SirenMapExport"]
+def metrics_table(metrics: Mapping[str, Any], prefix: str = "test/") -> str:
+    """A plain-text table of the ``prefix`` metrics, full names (no truncation), grouped
+    by test set: one row per ``<set>`` (``test/<set>/<metric>``), one column per metric."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        key = str(key)
+        if not key.startswith(prefix):
+            continue
+        head, _, metric = key[len(prefix) :].rpartition("/")
+        rows.setdefault(head or "-", {})[metric] = float(value)
+    if not rows:
+        return ""
+    columns = sorted({c for row in rows.values() for c in row})
+    names = sorted(rows)
+    width = max(len("test set"), *(len(n) for n in names))
+    cells = {c: max(len(c), 10) for c in columns}
+    lines = ["  ".join(["test set".ljust(width), *(c.rjust(cells[c]) for c in columns)])]
+    for name in names:
+        values = [
+            (f"{rows[name][c]:.4f}" if c in rows[name] else "").rjust(cells[c]) for c in columns
+        ]
+        lines.append("  ".join([name.ljust(width), *values]))
+    return "\n".join(lines)
+
+
+class MetricsTableLogger(pl.Callback):
+    """After testing (rank 0), logs every ``test/...`` metric in one table, test sets by row
+    with their full names (Lightning's own table truncates long names such as
+    ``test/synthetic_d1_tiny:test/...``; the CLI runs ``trainer.test(verbose=False)`` beside
+    this one)."""
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if not trainer.is_global_zero:
+            return
+        table = metrics_table(trainer.callback_metrics)
+        if table:
+            log.info("test metrics:\n%s", table)
+
+
+__all__ = ["CNNTableWriter", "SirenMapExport", "MetricsTableLogger", "metrics_table"]

@@ -86,3 +86,23 @@ def test_models_import_neither_lightning_nor_matplotlib(banned):
                 names = [node.module]
             found += [f"{path.name}: {n}" for n in names if n.split(".")[0] == banned]
     assert found == []
+
+
+def test_test_metrics_table_keeps_full_names():
+    from sss2bathy.callbacks import metrics_table
+
+    metrics = {
+        "test/synthetic_d1_tiny:test/mae": 0.05,
+        "test/synthetic_d1_tiny:test/constant/mae": 0.08,
+        "test/synthetic_d2_tiny/mae": 0.07,
+        "val/mae": 1.0,
+    }
+    lines = metrics_table(metrics).splitlines()
+    assert lines[0].split() == ["test", "set", "mae"]
+    rows = {line.split()[0]: line.split()[1:] for line in lines[1:]}
+    assert rows == {
+        "synthetic_d1_tiny:test": ["0.0500"],
+        "synthetic_d1_tiny:test/constant": ["0.0800"],
+        "synthetic_d2_tiny": ["0.0700"],
+    }
+    assert metrics_table({"val/mae": 1.0}) == ""
