@@ -27,8 +27,8 @@ from sss2bathy.callbacks.images import NormalImageLogger, SirenMapImages, render
 from sss2bathy.callbacks.lambert import LambertCurvesLogger
 from sss2bathy.callbacks.writers import (
     CNNTableWriter,
-    SirenMapExport,
     MetricsTableLogger,
+    SirenMapExport,
     metrics_table,
 )
 
