@@ -38,7 +38,16 @@ Speed (a training step is mostly these passes; measured by ``make bench``):
 * without a graph (the intersection finder, map evaluation) every elementwise step runs
   in place;
 * points go through in blocks of ``chunk`` (default :data:`CPU_CHUNK` on CPU, all at once
-  elsewhere) so each block's ``N x hidden`` temporaries stay in the core's cache.
+  elsewhere) so each block's ``N x hidden`` temporaries stay in the core's cache;
+* optionally (``compile_no_graph=True``) :meth:`Siren.height_and_gradient` without a graph
+  (the intersection finder's pass) runs a ``torch.compile``-d block function at one fixed
+  block shape (the last block is zero-padded to it), so a fit compiles once: each layer's
+  ``sin`` and ``cos`` become one loop over the pre-activations, as do the reverse pass's
+  products with the cosines. 1.47x the CPU time of the eager pass on 8192 points (one
+  thread, ``benchmarks/siren_kernels.py``), ~15-50 s to compile; not bit for bit (heights to
+  ~2e-6 m, gradients to ~1e-7: ``sin``/``cos`` of another vectorisation, within an ulp), so
+  it is off by default; the training pass (with a graph) and :meth:`Siren.height` stay eager.
+  vectorisation), so it is off by default.
 
 Precision. ``precision="bf16"`` runs the hidden ``hidden x hidden`` layers of the
 training pass of :meth:`Siren.height_and_gradient` (with a graph: the sensor model's
@@ -184,6 +193,18 @@ def _gradient_block(
     return z, g
 
 
+_COMPILED_GRADIENT_BLOCK: object | None = None
+
+
+def _compiled_gradient_block():
+    """``torch.compile(_gradient_block)`` at static shapes, made on first use (one per
+    process; dynamo keeps one graph per block shape and dtype)."""
+    global _COMPILED_GRADIENT_BLOCK
+    if _COMPILED_GRADIENT_BLOCK is None:
+        _COMPILED_GRADIENT_BLOCK = torch.compile(_gradient_block, dynamic=False)
+    return _COMPILED_GRADIENT_BLOCK
+
+
 def _check_pair(name: str, value: Sequence[float], n: int) -> tuple[float, ...]:
     vals = tuple(float(v) for v in value)
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
@@ -205,6 +226,8 @@ class Siren(nn.Module):
             of :meth:`height_and_gradient` (module docstring); everything else is float32.
         chunk: points per block of every pass; ``None`` = :data:`CPU_CHUNK` on CPU, all
             points at once on other devices.
+        compile_no_graph: run :meth:`height_and_gradient` without a graph (the finder) through
+            ``torch.compile`` at one block shape (module docstring); ``False``: eager.
         encoding: optional input encoding (:class:`~sss2bathy.models.encoding.Encoding`
             with ``in_dim == 2``) between the normalised ``(x, y)`` and the first sine
             layer, whose ``in_features`` becomes ``encoding.out_dim``; ``None``: the plain
@@ -225,8 +248,14 @@ class Siren(nn.Module):
         precision: str = "fp32",
         chunk: int | None = None,
         encoding: Encoding | None = None,
+        compile_no_graph: bool = False,
     ) -> None:
         super().__init__()
+        if not isinstance(compile_no_graph, bool):
+            raise ValueError(
+                f"compile_no_graph: expected true or false, found {compile_no_graph!r}"
+            )
+        self.compile_no_graph = compile_no_graph
         if precision not in PRECISIONS:
             raise ValueError(
                 f"precision: expected one of {sorted(PRECISIONS)}, found {precision!r}"
@@ -403,6 +432,25 @@ class Siren(nn.Module):
         chunk = self.chunk_for(x.device)
         return [x] if chunk is None or x.shape[0] <= chunk else list(x.split(chunk))
 
+    def _compiled_blocks(
+        self, xy: torch.Tensor, f: _Folded
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The no-graph gradient pass through the compiled block function, every block of
+        ``chunk_for(device)`` points (:data:`CPU_CHUNK` where that is all at once): the
+        last one zero-padded to it and cropped, so one shape is ever compiled."""
+        self._check_xy(xy)
+        x = self.normalized(xy)
+        chunk = self.chunk_for(x.device) or CPU_CHUNK
+        block = _compiled_gradient_block()
+        out = []
+        for part in x.split(chunk):
+            n = part.shape[0]
+            if n < chunk:
+                part = torch.cat([part, part.new_zeros(chunk - n, part.shape[1])])
+            z, g = block(part, f, False, self.encoding)
+            out.append((z[:n], g[:n]))
+        return out
+
     def _graph(self, xy: torch.Tensor) -> bool:
         return torch.is_grad_enabled() and (
             xy.requires_grad or any(p.requires_grad for p in self.parameters())
@@ -442,7 +490,10 @@ class Siren(nn.Module):
         low = self._low_dtype(xy.device, graph)
         with autocast_disabled(xy.device):
             f = self._folded(low)
-            out = [_gradient_block(x, f, graph, self.encoding) for x in self._blocks(xy)]
+            if self.compile_no_graph and not graph:
+                out = self._compiled_blocks(xy, f)
+            else:
+                out = [_gradient_block(x, f, graph, self.encoding) for x in self._blocks(xy)]
         if len(out) == 1:
             return out[0]
         return torch.cat([o[0] for o in out]), torch.cat([o[1] for o in out])
@@ -452,5 +503,5 @@ class Siren(nn.Module):
             f"hidden={self.hidden}, n_layers={self.n_layers}, omega0={self.omega0}, "
             f"bounds={tuple(round(b, 3) for b in self.bounds)}, "
             f"z_range={tuple(round(z, 3) for z in self.z_range)}, precision={self.precision}, "
-            f"chunk={self.chunk}"
+            f"chunk={self.chunk}, compile_no_graph={self.compile_no_graph}"
         )
