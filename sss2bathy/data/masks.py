@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.geometry import arc_basis
 from sss2bathy.survey import (
     MASK_NO_HIT,
     MASK_OUT_OF_BEAM,
@@ -128,9 +129,9 @@ def flat_seabed_depression(
     r = np.asarray(range_m, np.float64)[None, None, :]
     h = np.asarray(altitude_m, np.float64)[:, None, None]
     rot = np.asarray(rotation, np.float64)
-    sigma = np.array([1.0, -1.0])[None, :, None]
-    a = sigma * rot[:, 2, 1][:, None, None]
-    b = -rot[:, 2, 2][:, None, None] * np.ones_like(sigma)
+    u, w = arc_basis(rot[:, None], np.array([0, 1]))
+    a = u[..., 2][:, :, None]
+    b = -w[..., 2][:, :, None]
     rho = np.hypot(a, b)
     with np.errstate(invalid="ignore", divide="ignore"):
         c = -h / r / rho

@@ -261,22 +261,6 @@ class Surface(Protocol):
         """``(N,)`` reflectivity multiplier (mean ~1) at ``points``."""
 
 
-class MeshSurface:
-    """A mesh of one material without texture; normals are the faces' normals."""
-
-    def __init__(self, caster: RayCaster, material: int = 0) -> None:
-        self.caster, self.material = caster, int(material)
-
-    def normals(self, points: np.ndarray, tri: np.ndarray) -> np.ndarray:
-        return self.caster.face_normals(tri)
-
-    def materials(self, points: np.ndarray) -> np.ndarray:
-        return np.full(len(points), self.material, dtype=np.int64)
-
-    def texture(self, points: np.ndarray) -> np.ndarray:
-        return np.ones(len(points))
-
-
 # ------------------------------------------------------------------------ simulation
 @dataclass
 class PingEchoes:

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from sss2bathy.geometry import attitude_to_rotation
 from sss2bathy.sim.config import SonarParams
-from sss2bathy.sim.sonar import MaterialResponse, MeshSurface, RayCaster
+from sss2bathy.sim.sonar import MaterialResponse, RayCaster
 from sss2bathy.survey import BathyGrid
 from sss2bathy.utils.config import survey_preset
 
@@ -32,6 +32,22 @@ def grid_mesh(heights_fn, half: float = 45.0, cell: float = 1.0) -> trimesh.Trim
     x = np.arange(-half, half + cell / 2, cell)
     X, Y = np.meshgrid(x, x)
     return BathyGrid(heights_fn(X, Y), float(x[0]), float(x[0]), cell).to_mesh()
+
+
+class MeshSurface:
+    """A mesh of one material without texture; normals are the faces' normals."""
+
+    def __init__(self, caster: RayCaster, material: int = 0) -> None:
+        self.caster, self.material = caster, int(material)
+
+    def normals(self, points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        return self.caster.face_normals(tri)
+
+    def materials(self, points: np.ndarray) -> np.ndarray:
+        return np.full(len(points), self.material, dtype=np.int64)
+
+    def texture(self, points: np.ndarray) -> np.ndarray:
+        return np.ones(len(points))
 
 
 def scene(mesh: trimesh.Trimesh) -> tuple[RayCaster, MeshSurface]:
