@@ -114,7 +114,6 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("data.survey.plan.line_spacing_m", positive, "a positive number (m)"),
     ("data.survey.plan.speed_mps", positive, "a positive number (m/s)"),
     ("data.survey.plan.ping_rate_hz", positive, "a positive number (Hz)"),
-    ("model.w_height", non_negative, "a number >= 0"),
     ("model.eval_cell_m", positive, "a positive number (m)"),
     ("model.sensor.shadow_threshold", non_negative, "a number >= 0"),
     ("model.optimizer.lr", positive, "a positive learning rate"),

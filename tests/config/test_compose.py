@@ -31,6 +31,33 @@ def _resolve(cfg):
     return OmegaConf.to_container(OmegaConf.create(c), resolve=True)
 
 
+# one composed config per experiment; each case sets one bad value (yaml-parsed) on a copy
+_COMPOSED: dict[tuple[str, ...], object] = {}
+_RUN_DIR = tempfile.mkdtemp(prefix="sss2bathy_compose_")
+
+
+def _composed(*overrides: str):
+    if overrides not in _COMPOSED:
+        with initialize_config_dir(str(CONF), version_base="1.3"):
+            cfg = compose(
+                "train",
+                overrides=["scale=tiny", "logger=none", f"paths.output_dir={_RUN_DIR}", *overrides],
+                return_hydra_config=True,
+            )
+        with open_dict(cfg):
+            cfg.hydra.runtime.output_dir = _RUN_DIR
+        _COMPOSED[overrides] = cfg
+    return _COMPOSED[overrides]
+
+
+def _startup(cfg) -> None:
+    """What sss2bathy-train checks before any data is made: the cross-key table, then every
+    constructor's own checks (datamodule, model, callbacks, loggers, trainer)."""
+    validate_config(cfg)
+    HydraConfig.instance().set_config(cfg)
+    instantiate_run(cfg)
+
+
 def test_paper_experiments_exist():
     expected = {
         "cnn",
@@ -77,9 +104,10 @@ def test_other_entry_configs_compose(config_name):
     ],
 )
 def test_validation_names_key_and_value(override, key):
-    cfg = _compose(overrides=["experiment=siren_gt_n2d", "scale=tiny", override])
+    cfg = copy.deepcopy(_composed("experiment=siren_gt_n2d"))
+    OmegaConf.update(cfg, key, yaml.safe_load(override.split("=")[1]))
     with pytest.raises(ConfigError) as err:
-        validate_config(cfg)
+        _startup(cfg)
     assert f"'{key}'" in str(err.value)
     assert override.split("=")[1] in str(err.value)
 
@@ -88,33 +116,6 @@ def test_window_larger_than_waterfall_rejected():
     cfg = _compose(overrides=["experiment=cnn", "scale=tiny", "data.window_bins=4096"])
     with pytest.raises(ConfigError, match="data.window_bins"):
         validate_config(cfg)
-
-
-# one composed config per experiment; each case sets one bad value (yaml-parsed) on a copy
-_COMPOSED: dict[tuple[str, ...], object] = {}
-_RUN_DIR = tempfile.mkdtemp(prefix="sss2bathy_compose_")
-
-
-def _composed(*overrides: str):
-    if overrides not in _COMPOSED:
-        with initialize_config_dir(str(CONF), version_base="1.3"):
-            cfg = compose(
-                "train",
-                overrides=["scale=tiny", "logger=none", f"paths.output_dir={_RUN_DIR}", *overrides],
-                return_hydra_config=True,
-            )
-        with open_dict(cfg):
-            cfg.hydra.runtime.output_dir = _RUN_DIR
-        _COMPOSED[overrides] = cfg
-    return _COMPOSED[overrides]
-
-
-def _startup(cfg) -> None:
-    """What sss2bathy-train checks before any data is made: the cross-key table, then every
-    constructor's own checks (datamodule, model, callbacks, loggers, trainer)."""
-    validate_config(cfg)
-    HydraConfig.instance().set_config(cfg)
-    instantiate_run(cfg)
 
 
 XTF = ("experiment=cnn", "data/survey=xtf", "data.survey.files=/none", "data.test_surveys=null")
