@@ -67,6 +67,7 @@ COLUMNS = (
     "method_best_mae",
     "t_within_s",
     "final_mae",
+    "map_mae",
     "evaluations",
     "steps",
     "fit_wall_s",
@@ -159,7 +160,13 @@ def to_markdown(
         f"Command: `{meta['command']}`  ",
         f"Revision {meta.get('revision', '?')}, {meta.get('machine', '')}, "
         f"budget {meta['budget_s'] / 60:g} min of fitting per run, "
-        f"{meta['evals_per_epoch']} map evaluations per epoch, threads {meta['threads']}.",
+        f"{meta['evals_per_epoch']} map evaluations per epoch, threads {meta['threads']}"
+        + (
+            f", stopped after {meta['holdout_stop']} evaluations without a lower held-out "
+            "altimeter MAE (map: the SIREN of its lowest)."
+            if meta.get("holdout_stop")
+            else "."
+        ),
         "",
         "## Survey preparation",
         "",
@@ -174,7 +181,7 @@ def to_markdown(
         )
     head = ["method", "schedule", "best MAE (m)", f"time to {WITHIN:.0%} of best (min)"]
     head += [f"MAE at {k[4:-3]} min" for k in marks]
-    head += ["final MAE", "evals", "steps", "fit wall (min)"]
+    head += ["last eval MAE", "exported map MAE", "evals", "steps", "fit wall (min)"]
     lines += [
         "",
         "## Time to quality",
@@ -196,6 +203,7 @@ def to_markdown(
             _f(t / 60 if math.isfinite(t) else math.nan, ".2f"),
             *(_f(r[k]) for k in marks),
             _f(r["final_mae"]),
+            _f(r.get("map_mae", math.nan)),
             str(r["evaluations"]),
             str(r["steps"]),
             _f(r["fit_wall_s"] / 60, ".2f"),
@@ -282,6 +290,7 @@ def prepare_commands(
         f"data/survey={preset}",
         f"scale={scale}",
         f"paths.data_dir={data_dir}",
+        f"paths.output_dir={Path(run_root) / 'prepare'}",
         "render=false",
     ]
     return {
@@ -302,10 +311,17 @@ def fit_command(
     threads: int | None = None,
     seed: int = 42,
     extra: Sequence[str] = (),
+    holdout_stop: int = 0,
 ) -> list[str]:
     """The ``sss2bathy-train`` command of one run: at most ``budget_s`` seconds of fitting
     (``trainer.max_time``), a map evaluation ``evals_per_epoch`` times an epoch, no logger;
-    ``extra`` = further overrides."""
+    ``extra`` = further overrides.
+
+    ``holdout_stop > 0``: stop once the held-out altimeter MAE (``val/holdout_alt_mae``, a
+    signal without MBES; ``data.holdout``) has not improved for that many evaluations
+    (Lightning's ``EarlyStopping``), and map the SIREN of its lowest value
+    (``model.select_best=holdout_alt_mae``). 0: off.
+    """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {sorted(METHODS)}, found {method!r}")
     if schedule not in SCHEDULES:
@@ -325,11 +341,22 @@ def fit_command(
         "logger=none",
         "trainer.enable_progress_bar=false",
         f"paths.data_dir={data_dir}",
+        # anything a run writes outside its run folder stays in the study's folder
+        f"paths.output_dir={Path(run_dir).parent}",
         f"hydra.run.dir={run_dir}",
         "model.eval_every_n_epochs=1",
         f"++trainer.val_check_interval={1.0 / evals_per_epoch:.6g}",
         f"++trainer.max_time={{seconds:{max(int(round(budget_s)), 1)}}}",
     ]
+    if not (isinstance(holdout_stop, int) and holdout_stop >= 0):
+        raise ValueError(f"holdout_stop: expected an integer >= 0, found {holdout_stop!r}")
+    if holdout_stop:
+        cmd += [
+            "model.select_best=holdout_alt_mae",
+            "+callbacks.holdout_stop={_target_:pytorch_lightning.callbacks.EarlyStopping,"
+            f"monitor:val/holdout_alt_mae,mode:min,patience:{holdout_stop},"
+            "check_on_train_epoch_end:false}",
+        ]
     if threads is not None:
         cmd.append(f"torch_threads={int(threads)}")
     return cmd + list(extra)
@@ -398,6 +425,15 @@ def prepare_survey(
     return result
 
 
+def _map_mae(run_dir: Path) -> float:
+    """MAE of the map a run exported (``metrics.json`` ``final/mae``: with
+    ``select_best`` the SIREN it chose, not the last one); NaN without one."""
+    try:
+        return float(json.loads((run_dir / "metrics.json").read_text())["final/mae"])
+    except (OSError, KeyError, TypeError, ValueError):
+        return math.nan
+
+
 def _revision() -> str:
     try:
         out = subprocess.run(
@@ -422,6 +458,7 @@ def run_study(
     marks_min: Sequence[float] = MARKS_MIN,
     extra: Sequence[str] = (),
     command: str = "",
+    holdout_stop: int = 0,
 ) -> list[dict[str, Any]]:
     """Prepare once, fit every method x schedule (one at a time), write the table/figure."""
     out = Path(out)
@@ -438,7 +475,7 @@ def run_study(
             run_dir = out / "runs" / f"{method}_{schedule}"
             cmd = fit_command(
                 method, schedule, scale, data_dir, run_dir, budget_s,
-                evals_per_epoch, threads, seed, extra,
+                evals_per_epoch, threads, seed, extra, holdout_stop,
             )  # fmt: skip
             log.info("fit %s %s: %s", method, schedule, " ".join(cmd))
             try:
@@ -452,12 +489,14 @@ def run_study(
     rows = time_to_quality(curves, budget_s, WITHIN, marks_min) if curves else []
     for row in rows:
         row["process_wall_s"], row["run"] = walls[(row["method"], row["schedule"])]
+        row["map_mae"] = _map_mae(out / row["run"])
     meta = {
         "scale": scale,
         "survey": survey_status(scale, data_dir)["name"],
         "budget_s": budget_s,
         "evals_per_epoch": evals_per_epoch,
         "threads": "torch default" if threads is None else threads,
+        "holdout_stop": holdout_stop,
         "revision": _revision(),
         "machine": f"{os.cpu_count()} CPUs",
         "command": command or f"python -m sss2bathy.eval.paper_cpu_study --scale {scale}",
@@ -485,6 +524,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--marks-min", type=float, nargs="+", default=list(MARKS_MIN))
     p.add_argument("--extra", nargs="*", default=[], help="further sss2bathy-train overrides")
     p.add_argument(
+        "--holdout-stop",
+        type=int,
+        default=0,
+        help="stop a fit after N evaluations without a lower held-out altimeter MAE (0: off)",
+    )
+    p.add_argument(
         "--dry-run", action="store_true", help="say whether the survey is cached; print commands"
     )
     args = p.parse_args(argv)
@@ -502,6 +547,7 @@ def main(argv: list[str] | None = None) -> int:
                 cmd = fit_command(
                     method, schedule, args.scale, data_dir, run_dir, 60 * args.budget_min,
                     args.evals_per_epoch, args.threads, args.seed, args.extra,
+                    args.holdout_stop,
                 )  # fmt: skip
                 print(" ".join(cmd[1:]))
         return 0
@@ -509,6 +555,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out, args.scale, args.budget_min, data_dir, args.methods, args.schedules,
         args.evals_per_epoch, args.threads, args.seed, args.marks_min, args.extra,
         command="python -m sss2bathy.eval.paper_cpu_study " + " ".join(argv or sys.argv[1:]),
+        holdout_stop=args.holdout_stop,
     )  # fmt: skip
     print((Path(args.out) / "paper_cpu_study.md").read_text())
     return 0 if rows else 1

@@ -71,7 +71,7 @@ def test_markdown_and_csv_tables():
     meta = {"scale": "paper", "survey": "synthetic_d1_paper", "command": "x",
             "budget_s": 300, "evals_per_epoch": 4, "threads": 2}  # fmt: skip
     md = to_markdown(rows, prep, meta)
-    assert "| SIREN-GT-N2d | paper | 0.3000 | 3.33 | 0.3000 | 0.3000 | 2 | 20 | 3.33 |" in md
+    assert "| SIREN-GT-N2d | paper | 0.3000 | 3.33 | 0.3000 | 0.3000 | - | 2 | 20 | 3.33 |" in md
     assert "| simulation | 12.0 | 8.0 | generated |" in md
     parsed = list(csv.DictReader(io.StringIO(to_csv(rows))))
     assert parsed[0]["method"] == "siren_gt_n2d" and float(parsed[0]["mae_5min"]) == 0.3
@@ -87,6 +87,14 @@ def test_commands(tmp_path):
         fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
     with pytest.raises(ValueError, match="method: expected one of"):
         fit_command("cnn", "fast", "paper", tmp_path, tmp_path, 60)
+    assert not any("EarlyStopping" in c for c in cmd)  # the stop lever is off by default
+    stop = fit_command("siren_gt_n2d", "fast", "paper", tmp_path, tmp_path, 60, holdout_stop=3)
+    assert "model.select_best=holdout_alt_mae" in stop
+    early = [c for c in stop if "EarlyStopping" in c]
+    assert len(early) == 1 and "monitor:val/holdout_alt_mae" in early[0]
+    assert "patience:3" in early[0]
+    with pytest.raises(ValueError, match="holdout_stop: expected an integer >= 0"):
+        fit_command("siren_gt_n2d", "fast", "paper", tmp_path, tmp_path, 60, holdout_stop=-1)
     prep = prepare_commands("tiny", tmp_path, tmp_path)
     assert "drape=false" in prep["simulation"] and "drape=true" in prep["draping"]
 
@@ -113,3 +121,18 @@ def test_tiny_study_end_to_end(tmp_path):
         assert (out / name).is_file()
     assert (out / "runs" / "siren_gt_n2d_fast" / "metric_curve.csv").is_file()
     assert "| simulation |" in (out / "paper_cpu_study.md").read_text()
+    assert row["map_mae"] == pytest.approx(row["final_mae"], rel=0.05)  # no select_best
+
+
+@pytest.mark.slow
+def test_tiny_holdout_stop_ends_the_fit_early(tmp_path):
+    rows = run_study(
+        tmp_path / "out", scale="tiny", budget_min=2.0, data_dir=tmp_path / "data",
+        methods=["siren_gt_n2d"], schedules=["fast"], threads=1, marks_min=(0.05,),
+        evals_per_epoch=4, holdout_stop=1,
+        extra=["data.holdout.block_pings=10"],  # tiny lines are shorter than 50-ping blocks
+    )  # fmt: skip
+    # the fast schedule's 10 epochs x 40 steps (4 evaluations each) would give 40 or more
+    assert len(rows) == 1 and rows[0]["steps"] < 400 and rows[0]["evaluations"] < 40
+    assert "stopped after 1 evaluations" in (tmp_path / "out" / "paper_cpu_study.md").read_text()
+    assert rows[0]["map_mae"] <= rows[0]["final_mae"]  # the held-out best SIREN is mapped
