@@ -279,10 +279,19 @@ def survey_status(scale: str, data_dir: str | Path, preset: str = PRESET) -> dic
 
 
 def prepare_commands(
-    scale: str, data_dir: str | Path, run_root: str | Path, preset: str = PRESET
+    scale: str,
+    data_dir: str | Path,
+    run_root: str | Path,
+    preset: str = PRESET,
+    sim_workers: int | None = None,
 ) -> dict[str, list[str]]:
     """``{"simulation": cmd, "draping": cmd}``: the survey without draping, then draped
-    (the second finds the survey cached, so its time is the draping's)."""
+    (the second finds the survey cached, so its time is the draping's). ``sim_workers``:
+    the simulator's processes (``data.survey.workers``, not part of the cache key); None =
+    the preset's."""
+    if sim_workers is not None and not (isinstance(sim_workers, int) and sim_workers >= 1):
+        raise ValueError(f"sim_workers: expected an integer >= 1 or None, found {sim_workers!r}")
+    workers = [] if sim_workers is None else [f"data.survey.workers={sim_workers}"]
     base = [
         sys.executable,
         "-m",
@@ -292,6 +301,7 @@ def prepare_commands(
         f"paths.data_dir={data_dir}",
         f"paths.output_dir={Path(run_root) / 'prepare'}",
         "render=false",
+        *workers,
     ]
     return {
         step: [*base, f"drape={'true' if step == 'draping' else 'false'}",
@@ -398,13 +408,13 @@ def _draped_ready(folder: Path) -> bool:
 
 
 def prepare_survey(
-    scale: str, data_dir: Path, out: Path, threads: int | None
+    scale: str, data_dir: Path, out: Path, threads: int | None, sim_workers: int | None = None
 ) -> dict[str, dict[str, Any]]:
     """Run :func:`prepare_commands`; per step its process wall, in-process time and note."""
     status = survey_status(scale, data_dir)
     folder = Path(status["folder"])
     draped_before = _draped_ready(folder)
-    cmds = prepare_commands(scale, data_dir, out)
+    cmds = prepare_commands(scale, data_dir, out, sim_workers=sim_workers)
     result: dict[str, dict[str, Any]] = {}
     for step, cmd in cmds.items():
         log.info("prepare %s: %s", step, " ".join(cmd))
@@ -459,13 +469,14 @@ def run_study(
     extra: Sequence[str] = (),
     command: str = "",
     holdout_stop: int = 0,
+    sim_workers: int | None = None,
 ) -> list[dict[str, Any]]:
     """Prepare once, fit every method x schedule (one at a time), write the table/figure."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else ROOT / "data"
     budget_s = 60.0 * float(budget_min)
-    prep = prepare_survey(scale, data_dir, out, threads)
+    prep = prepare_survey(scale, data_dir, out, threads, sim_workers)
     atomic_write_text(out / "prepare.json", json.dumps(prep, indent=2) + "\n")
     curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     walls: dict[tuple[str, str], tuple[float, str]] = {}
@@ -530,6 +541,9 @@ def main(argv: list[str] | None = None) -> int:
         help="stop a fit after N evaluations without a lower held-out altimeter MAE (0: off)",
     )
     p.add_argument(
+        "--sim-workers", type=int, default=None, help="simulator processes (default: preset's)"
+    )
+    p.add_argument(
         "--dry-run", action="store_true", help="say whether the survey is cached; print commands"
     )
     args = p.parse_args(argv)
@@ -539,7 +553,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.dry_run:
         status = survey_status(args.scale, data_dir)
         print(json.dumps(status, indent=2))
-        for cmd in prepare_commands(args.scale, data_dir, args.out).values():
+        for cmd in prepare_commands(
+            args.scale, data_dir, args.out, sim_workers=args.sim_workers
+        ).values():
             print(" ".join(cmd[1:]))
         for method in args.methods:
             for schedule in args.schedules:
@@ -555,7 +571,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out, args.scale, args.budget_min, data_dir, args.methods, args.schedules,
         args.evals_per_epoch, args.threads, args.seed, args.marks_min, args.extra,
         command="python -m sss2bathy.eval.paper_cpu_study " + " ".join(argv or sys.argv[1:]),
-        holdout_stop=args.holdout_stop,
+        holdout_stop=args.holdout_stop, sim_workers=args.sim_workers,
     )  # fmt: skip
     print((Path(args.out) / "paper_cpu_study.md").read_text())
     return 0 if rows else 1

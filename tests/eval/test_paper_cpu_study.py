@@ -97,6 +97,11 @@ def test_commands(tmp_path):
         fit_command("siren_gt_n2d", "fast", "paper", tmp_path, tmp_path, 60, holdout_stop=-1)
     prep = prepare_commands("tiny", tmp_path, tmp_path)
     assert "drape=false" in prep["simulation"] and "drape=true" in prep["draping"]
+    assert not any("workers" in c for c in prep["simulation"])
+    prep2 = prepare_commands("tiny", tmp_path, tmp_path, sim_workers=2)
+    assert "data.survey.workers=2" in prep2["simulation"]
+    with pytest.raises(ValueError, match="sim_workers: expected an integer >= 1"):
+        prepare_commands("tiny", tmp_path, tmp_path, sim_workers=0)
 
 
 def test_survey_status_is_a_dry_compose(tmp_path):
