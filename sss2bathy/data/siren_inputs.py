@@ -7,8 +7,9 @@ sonar's beam limits and bin ranges, the size of the ping table (the warm-start c
 the MBES grid (or None), the sonar tracks and swath half-width (the scored area), the
 held-out altimeter split and what the georeferenced map export needs.
 
-A datamodule provides it through ``siren_inputs()``; :meth:`SirenInputs.of` also builds
-it from the attributes of a set-up :class:`~sss2bathy.data.pings.PingAltimeterDataModule`.
+A datamodule provides it through ``siren_inputs()`` (``SirenInputs.from_attributes(self)``
+in :class:`~sss2bathy.data.pings.PingAltimeterDataModule`); :meth:`SirenInputs.of` asks for
+that, or reads the same attributes of a datamodule without the accessor.
 """
 
 from __future__ import annotations
@@ -78,6 +79,16 @@ class SirenInputs:
                     f"{type(inputs).__name__}"
                 )
             return inputs
+        return cls.from_attributes(datamodule)
+
+    @classmethod
+    def from_attributes(cls, datamodule: Any) -> SirenInputs:
+        """Read from the attributes of a set-up ``PingAltimeterDataModule`` (what its
+        ``siren_inputs()`` returns).
+
+        Raises:
+            ValueError: no datamodule, or one that is not set up (names the attributes).
+        """
         missing = [a for a in _ATTRIBUTES if getattr(datamodule, a, None) is None and a != "grid"]
         if datamodule is None or missing:
             raise ValueError(

@@ -106,3 +106,18 @@ def test_test_metrics_table_keeps_full_names():
         "synthetic_d2_tiny": ["0.0700"],
     }
     assert metrics_table({"val/mae": 1.0}) == ""
+
+
+def test_siren_inputs_come_from_the_accessor_or_the_attributes():
+    from sss2bathy.data.siren_inputs import SirenInputs
+
+    with pytest.raises(ValueError, match="expected a set-up PingAltimeterDataModule.*found none"):
+        SirenInputs.of(None)
+    with pytest.raises(ValueError, match=r"one without \['bounds'"):
+        SirenInputs.of(SimpleNamespace(bounds=None))
+    inputs = SirenInputs(
+        (0.0, 0.0, 1.0, 1.0), (-2.0, -1.0), None, np.zeros(3), 4, None, np.zeros((1, 2)), 5.0
+    )
+    assert SirenInputs.of(SimpleNamespace(siren_inputs=lambda: inputs)) is inputs
+    with pytest.raises(ValueError, match="siren_inputs\\(\\): expected a SirenInputs"):
+        SirenInputs.of(SimpleNamespace(siren_inputs=lambda: {}))
