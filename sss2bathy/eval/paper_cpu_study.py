@@ -357,6 +357,9 @@ def fit_command(
         "model.eval_every_n_epochs=1",
         f"++trainer.val_check_interval={1.0 / evals_per_epoch:.6g}",
         f"++trainer.max_time={{seconds:{max(int(round(budget_s)), 1)}}}",
+        # Lightning ignores a stop request (the time limit) until min_epochs are done: an
+        # epoch of a paper-scale survey can outlast the budget
+        "++trainer.min_epochs=0",
     ]
     if not (isinstance(holdout_stop, int) and holdout_stop >= 0):
         raise ValueError(f"holdout_stop: expected an integer >= 0, found {holdout_stop!r}")

@@ -83,6 +83,7 @@ def test_commands(tmp_path):
     assert "experiment=siren_lambert" in cmd and "siren_schedule=fast" in cmd
     assert "++trainer.max_time={seconds:1200}" in cmd
     assert "++trainer.val_check_interval=0.25" in cmd and "torch_threads=2" in cmd
+    assert "++trainer.min_epochs=0" in cmd  # else the time limit waits for the epoch's end
     with pytest.raises(ValueError, match="schedule: expected one of"):
         fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
     with pytest.raises(ValueError, match="method: expected one of"):
@@ -127,6 +128,18 @@ def test_tiny_study_end_to_end(tmp_path):
     assert (out / "runs" / "siren_gt_n2d_fast" / "metric_curve.csv").is_file()
     assert "| simulation |" in (out / "paper_cpu_study.md").read_text()
     assert row["map_mae"] == pytest.approx(row["final_mae"], rel=0.05)  # no select_best
+
+
+@pytest.mark.slow
+def test_budget_stops_a_fit_inside_its_first_epoch(tmp_path):
+    rows = run_study(
+        tmp_path / "out", scale="tiny", budget_min=0.1, data_dir=tmp_path / "data",
+        methods=["siren_gt_n2d"], schedules=["fast"], threads=1, marks_min=(0.05,),
+        evals_per_epoch=100, extra=["scale.siren.fast_steps_per_epoch=5000"],
+    )  # fmt: skip
+    # an epoch of 5000 steps takes minutes; the 6 s budget ends the fit well inside it
+    assert len(rows) == 1 and 0 < rows[0]["steps"] < 2500
+    assert rows[0]["fit_wall_s"] < 60
 
 
 @pytest.mark.slow
