@@ -16,7 +16,6 @@ appends to the rows already in the file and continues their clocks.
 
 from __future__ import annotations
 
-import csv
 import math
 import time
 from pathlib import Path
@@ -25,9 +24,8 @@ from typing import Any
 import pytorch_lightning as pl
 from pytorch_lightning.callbacks import Callback
 
-from sss2bathy.utils.atomic import atomic_path
-
-BASE_COLUMNS = ("epoch", "step", "wall_s", "train_s", "lr")
+# the file's format (also what the schedule study reads) lives in eval/
+from sss2bathy.eval.metric_curve import BASE_COLUMNS, read_curve, write_curve
 
 
 class MetricCurve(Callback):
@@ -117,41 +115,4 @@ def evaluation_metrics(trainer: pl.Trainer, pl_module: pl.LightningModule) -> di
     return out
 
 
-def write_curve(path: str | Path, rows: list[dict[str, Any]]) -> None:
-    """Write ``rows`` (dicts) to ``path`` as CSV, base columns first (atomic)."""
-    keys = list(BASE_COLUMNS)
-    for row in rows:
-        keys += [k for k in row if k not in keys]
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=keys, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
-
-
-def read_curve(path: str | Path) -> list[dict[str, float]]:
-    """Rows of a ``metric_curve.csv`` as floats (empty cells -> NaN).
-
-    Raises:
-        ValueError: the file lacks one of the base columns or holds a non-number.
-    """
-    path = Path(path)
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in BASE_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(
-                f"{path}: expected columns {list(BASE_COLUMNS)}, missing {missing} "
-                f"(found {reader.fieldnames})"
-            )
-        rows = []
-        for i, raw in enumerate(reader, start=2):
-            row = {}
-            for key, value in raw.items():
-                try:
-                    row[key] = float(value) if value not in ("", None) else math.nan
-                except ValueError:
-                    raise ValueError(
-                        f"{path}, line {i}, column {key!r}: expected a number, found {value!r}"
-                    ) from None
-            rows.append(row)
-    return rows
+__all__ = ["BASE_COLUMNS", "MetricCurve", "evaluation_metrics", "read_curve", "write_curve"]
