@@ -130,9 +130,6 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("data.window.window_bins", positive_int, "a positive integer"),
     ("data.window.overlap", fraction, "a fraction in [0, 1)"),
     # the normal CNN (conf/model/normal_cnn.yaml, conf/loss)
-    ("model.net.base_width", positive_int, "a positive integer"),
-    ("model.net.n_blocks", non_negative_int, "an integer >= 0"),
-    ("model.net.outer_kernel", lambda v: positive_int(v) and v % 2 == 1, "an odd positive integer"),
     ("model.compile", boolean, "true or false"),
     ("model.loss.kind", *_choices("sss2bathy.losses.normal", "KINDS")),
     ("model.loss.base", *_choices("sss2bathy.losses.normal", "BASES")),
@@ -141,9 +138,6 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("model.loss.tv_along_track", non_negative, "a weight >= 0"),
     ("model.scheduler.gamma", _gamma, "a decay factor in (0, 1]"),
     # the SIREN fits (conf/model/siren_*.yaml)
-    ("model.siren.hidden", positive_int, "a positive integer"),
-    ("model.siren.n_layers", lambda v: positive_int(v) and v >= 2, "an integer >= 2"),
-    ("model.siren.omega0", positive, "a positive number"),
     ("model.siren.precision", *_choices("sss2bathy.models.siren", "PRECISIONS")),
     ("model.siren.chunk", positive_int, "a positive number of points or null"),
     ("model.region_radius_m", positive, "a positive number (m) or null"),
@@ -296,19 +290,34 @@ def _root_cause(err: BaseException) -> tuple[BaseException, str | None]:
     return err, full_key
 
 
-def constructor_error(node: str, err: BaseException) -> ConfigError:
+def constructor_error(node: str, err: BaseException, cfg: DictConfig | None = None) -> ConfigError:
     """A constructor's ``<argument>: expected ..., found ...`` as a :class:`ConfigError`
     naming the config key ``<node>.<argument>``, ``node`` being the config node whose
     ``_target_`` raised it: the constructor validated its own argument, this only says
     where in the config it came from. An argument already spelled from the config root
     (``data.survey.plan.n_test``) keeps its name; ``drape.rays_per_bin`` raised for the
-    ``data`` node becomes ``data.drape.rays_per_bin``."""
+    ``data`` node becomes ``data.drape.rays_per_bin``. With the composed ``cfg``: an
+    argument the node lacks but exactly one of its sub-nodes holds was raised by that
+    sub-node's object, built by the node's own constructor from a ``_partial_`` factory
+    (``hidden`` raised for ``model`` is ``model.siren.hidden``)."""
     message = str(err)
     match = _ARGUMENT.match(message)
     if match is None:
         return ConfigError(f"config node '{node}': {message}")
     argument, rest = match.groups()
-    key = argument if argument.split(".")[0] in _ROOT_KEYS else f"{node}.{argument}"
+    if argument.split(".")[0] in _ROOT_KEYS:
+        return ConfigError(f"config key '{argument}': {rest}")
+    key = f"{node}.{argument}"
+    section = OmegaConf.select(cfg, node, default=None) if cfg is not None else None
+    head = argument.split(".")[0].split("[")[0]
+    if isinstance(section, DictConfig) and head not in section:
+        holders = [
+            str(k)
+            for k, v in section.items_ex(resolve=False)
+            if isinstance(v, DictConfig) and head in v
+        ]
+        if len(holders) == 1:
+            key = f"{node}.{holders[0]}.{argument}"
     return ConfigError(f"config key '{key}': {rest}")
 
 
@@ -316,9 +325,10 @@ def constructor_error(node: str, err: BaseException) -> ConfigError:
 _ROOT_KEYS = ("data", "model", "trainer", "callbacks", "logger", "scale", "paths")
 
 
-def instantiate_group(group: str, build: Callable[[], Any]) -> Any:
-    """``build()`` (a group's instantiation), its constructors' ``ValueError`` as a
-    :class:`ConfigError` naming the config key (:func:`constructor_error`)."""
+def instantiate_group(group: str, build: Callable[[], Any], cfg: DictConfig | None = None) -> Any:
+    """``build()`` (the instantiation of the ``group`` node of the composed ``cfg``), its
+    constructors' ``ValueError`` as a :class:`ConfigError` naming the config key
+    (:func:`constructor_error`)."""
     try:
         return build()
     except ConfigError:
@@ -326,5 +336,5 @@ def instantiate_group(group: str, build: Callable[[], Any]) -> Any:
     except Exception as err:  # Hydra wraps constructor errors in InstantiationException
         cause, full_key = _root_cause(err)
         if isinstance(cause, ValueError) and not isinstance(cause, ConfigError):
-            raise constructor_error(full_key or group, cause) from err
+            raise constructor_error(full_key or group, cause, cfg) from err
         raise

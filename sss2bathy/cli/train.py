@@ -103,14 +103,17 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
     # Lightning (which also sets cuDNN and cuBLAS up for it)
     determinism = {"deterministic": "warn"} if cfg.get("deterministic") else {}
     datamodule = instantiate_group(
-        "data", lambda: hydra.utils.instantiate(cfg.data, _recursive_=False)
+        "data", lambda: hydra.utils.instantiate(cfg.data, _recursive_=False), cfg
     )
     model = instantiate_group(
         "model",
         lambda: hydra.utils.instantiate(cfg.model, _recursive_=True, _convert_="partial"),
+        cfg,
     )
-    callbacks = instantiate_group("callbacks", lambda: instantiate_callbacks(cfg.get("callbacks")))
-    loggers = instantiate_group("logger", lambda: instantiate_loggers(cfg.get("logger")))
+    callbacks = instantiate_group(
+        "callbacks", lambda: instantiate_callbacks(cfg.get("callbacks")), cfg
+    )
+    loggers = instantiate_group("logger", lambda: instantiate_loggers(cfg.get("logger")), cfg)
     from sss2bathy.callbacks import MetricCurve
 
     for c in callbacks:
@@ -129,6 +132,7 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
             _convert_="partial",
             **determinism,
         ),
+        cfg,
     )
     return Run(datamodule, model, callbacks, loggers, trainer)
 

@@ -258,3 +258,29 @@ def test_optuna_search_targets_existing_keys():
     assert cfg.optimized_metric == "val/mae"
     for key in sweeper.params:
         assert OmegaConf.select(cfg, key) is not None, f"searched key {key} is not in the config"
+
+
+def test_constructor_errors_name_the_config_key():
+    from sss2bathy.config_validation import constructor_error
+
+    cfg = OmegaConf.create({"model": {"w_height": 1.0, "siren": {"hidden": 8}}, "data": {}})
+
+    def named(node, message):
+        return str(constructor_error(node, ValueError(message), cfg))
+
+    assert named("model", "w_height: expected >= 0, found -1") == (
+        "config key 'model.w_height': expected >= 0, found -1"
+    )
+    # built by the module from its model.siren factory
+    assert named("model", "hidden: expected a positive width, found 0").startswith(
+        "config key 'model.siren.hidden':"
+    )
+    assert named("data", "drape.engine: expected one of [...], found 'x'").startswith(
+        "config key 'data.drape.engine':"
+    )
+    assert named("data", "data.survey.plan.n_test: expected >= 1, found 0").startswith(
+        "config key 'data.survey.plan.n_test':"
+    )
+    assert named("model", "something else went wrong") == (
+        "config node 'model': something else went wrong"
+    )
