@@ -103,7 +103,7 @@ def evaluation_metrics(trainer: pl.Trainer, pl_module: pl.LightningModule) -> di
         ev = pl_module.latest_evaluation
         if ev is None or ev.epoch != trainer.current_epoch:
             return {}
-        items = {f"val/{k}": v for k, v in ev.metrics.items()}
+        items = ev.tags("val/")
     else:
         items = {k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     out = {}

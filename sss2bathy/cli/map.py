@@ -26,6 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.metrics.bathy import MAP_TAGS
 
 log = logging.getLogger("sss2bathy.map")
 
@@ -122,7 +123,7 @@ class MapResult:
 
     def metric(self, name: str) -> float | None:
         """``final/<name>`` (the final map's), else the last logged ``val/<name>``."""
-        for key in (f"final/{name}", f"val/{name}"):
+        for key in (f"final/{name}", f"val/{MAP_TAGS.get(name, name)}"):
             value = self.metrics.get(key)
             if value is not None and math.isfinite(float(value)):
                 return float(value)

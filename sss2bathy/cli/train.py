@@ -21,7 +21,7 @@ from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment, 
 log = logging.getLogger("sss2bathy.train")
 
 # what a run without MBES is scored by when its optimized_metric was not logged
-HOLDOUT_METRIC = "val/holdout_alt_mae"
+HOLDOUT_METRIC = "val/holdout_alt_mae_m"
 
 
 @dataclass
@@ -38,7 +38,7 @@ def optimized_value(
     """``(metric name, value)`` to return to a sweeper for ``optimized_metric=name``.
 
     The configured metric when it was logged. A run without MBES (the sidescan-only route:
-    no ``val/mae``) falls back to the held-out altimeter MAE (:data:`HOLDOUT_METRIC`) with a
+    no ``val/map_mae_m``) falls back to the held-out altimeter MAE (:data:`HOLDOUT_METRIC`) with a
     WARNING, or to ``(None, None)`` with a WARNING when that was not logged either (no
     held-out points). A run with MBES that did not log its metric is a configuration error.
     """

@@ -7,7 +7,7 @@ Each of our test sets can carry a **constant-prediction row**: the training line
 n_lat predicted everywhere, scored with the same metrics on the same valid bins
 (``constant_rows``, ``{name: {..., "value": the constant}}``). The ``skill`` column is
 CNN MAE / constant MAE (< 1: the CNN beats a constant). They are stored in a run's
-``metrics.json`` as ``test/{name}/constant/{metric}`` (:func:`constant_rows_from_metrics`).
+``metrics.json`` as ``test/{name}/constant/nlat_{metric}`` (:func:`constant_rows_from_metrics`).
 
 The per-line, per-side mean bias of the predictions is written by :func:`write_cnn_bias`
 (``cnn_bias.csv``, ``cnn_bias_range.csv``, ``cnn_bias.png``).
@@ -35,6 +35,9 @@ BIAS_RANGE_CSV_NAME = "cnn_bias_range.csv"
 BIAS_PNG_NAME = "cnn_bias.png"
 CNN_PREDICTOR = "CNN"
 CONSTANT_KEY = "constant"
+# logged names of the six metrics: ``nlat_<metric>`` (n_lat is unitless; the deltas are in
+# percent), so an n_lat metric never shares a tag with a map metric in metres
+NLAT_PREFIX = "nlat_"
 SIDES = ("port", "starboard")
 
 
@@ -63,27 +66,42 @@ def _check_rows(rows: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, 
     return out
 
 
+def metric_column(logged: str) -> str | None:
+    """The table column of a logged metric name: ``nlat_mae`` -> ``mae`` (also the bare
+    ``mae`` of run records written before the ``nlat_`` names), else None."""
+    name = logged[len(NLAT_PREFIX) :] if logged.startswith(NLAT_PREFIX) else logged
+    return name if name in COLUMNS else None
+
+
 def table_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
-    """Group ``test/{name}/{metric}`` (or ``test/{metric}``) values into table rows
-    ``{name: {metric: value}}`` for the six paper metrics; rows missing one are left out."""
+    """Group ``test/{name}/nlat_{metric}`` (or ``test/nlat_{metric}``; the bare ``{metric}``
+    of older run records too) values into table rows ``{name: {metric: value}}`` for the six
+    paper metrics; rows missing one are left out."""
     rows: dict[str, dict[str, float]] = {}
     for key, value in metrics.items():
         parts = str(key).split("/")
-        if parts[0] != "test" or parts[-1] not in COLUMNS or len(parts) not in (2, 3):
+        column = metric_column(parts[-1])
+        if parts[0] != "test" or column is None or len(parts) not in (2, 3):
             continue
         name = parts[1] if len(parts) == 3 else "test"
-        rows.setdefault(name, {})[parts[-1]] = float(value)
+        row = rows.setdefault(name, {})
+        if parts[-1].startswith(NLAT_PREFIX) or column not in row:
+            row[column] = float(value)
     return {k: v for k, v in rows.items() if set(COLUMNS) <= set(v)}
 
 
 def constant_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str, float]]:
-    """Group ``test/{name}/constant/{metric}`` values into constant-prediction rows
+    """Group ``test/{name}/constant/nlat_{metric}`` (older records: ``.../{metric}``) and
+    ``test/{name}/constant/value`` into constant-prediction rows
     ``{name: {metric: value, "value": constant}}``; rows missing a metric are left out."""
     rows: dict[str, dict[str, float]] = {}
     for key, value in metrics.items():
         parts = str(key).split("/")
         if len(parts) == 4 and parts[0] == "test" and parts[2] == CONSTANT_KEY:
-            rows.setdefault(parts[1], {})[parts[3]] = float(value)
+            column = "value" if parts[3] == "value" else metric_column(parts[3])
+            row = rows.setdefault(parts[1], {})
+            if column is not None and (parts[3].startswith(NLAT_PREFIX) or column not in row):
+                row[column] = float(value)
     need = {*COLUMNS, "value"}
     return {k: v for k, v in rows.items() if need <= set(v)}
 
@@ -91,7 +109,8 @@ def constant_rows_from_metrics(metrics: Mapping[str, Any]) -> dict[str, dict[str
 def constant_metric_keys(name: str, row: Mapping[str, float]) -> dict[str, float]:
     """The ``metrics.json`` keys of one constant row (the inverse of
     :func:`constant_rows_from_metrics`)."""
-    return {f"test/{name}/{CONSTANT_KEY}/{k}": float(row[k]) for k in (*COLUMNS, "value")}
+    out = {f"test/{name}/{CONSTANT_KEY}/{NLAT_PREFIX}{k}": float(row[k]) for k in COLUMNS}
+    return {**out, f"test/{name}/{CONSTANT_KEY}/value": float(row["value"])}
 
 
 def _check_constant(

@@ -154,19 +154,25 @@ def read_run(run_dir: str | Path) -> list[dict[str, Any]]:
         raise ValueError(
             f"{run_dir / RUN_RECORD}: expected an integer 'n_train', found {record.get('n_train')!r}"
         )
-    sets = sorted(
-        k.split("/")[1] for k in metrics if k.startswith("test/") and k.count("/") == 2
-        and k.endswith("/mae")
-    )  # fmt: skip
+    # n_lat MAE keys: test/<set>/nlat_mae (run records before the nlat_ names: .../mae)
+    maes = {
+        k.split("/")[1]: float(v) for k, v in metrics.items() if k.startswith("test/")
+        and k.count("/") == 2 and k.endswith(("/nlat_mae", "/mae"))
+    }  # fmt: skip
+    sets = sorted(maes)
     if not sets:
-        raise ValueError(f"{run_dir / 'metrics.json'}: expected test/<set>/mae keys, found none")
+        raise ValueError(
+            f"{run_dir / 'metrics.json'}: expected test/<set>/nlat_mae keys, found none"
+        )
     rows = []
     for name in sets:
-        mae = float(metrics[f"test/{name}/mae"])
-        const = metrics.get(f"test/{name}/constant/mae")
+        mae = maes[name]
+        const = metrics.get(
+            f"test/{name}/constant/nlat_mae", metrics.get(f"test/{name}/constant/mae")
+        )
         if const is None:
             raise ValueError(
-                f"{run_dir / 'metrics.json'}: expected 'test/{name}/constant/mae' (the "
+                f"{run_dir / 'metrics.json'}: expected 'test/{name}/constant/nlat_mae' (the "
                 "constant prediction, written by CNNTableWriter), found none"
             )
         const = float(const)

@@ -55,7 +55,7 @@ CONF = ROOT / "conf"
 PRESET = "synthetic_d1"
 METHODS: dict[str, str] = {"siren_gt_n2d": "SIREN-GT-N2d", "siren_lambert": "SIREN-Lambert"}
 SCHEDULES = ("paper", "fast")
-KEY = "val/mae"
+KEY = "val/map_mae_m"
 CLOCK = "wall_s"
 #: "within 10 % of the best MAE"
 WITHIN = 0.10
@@ -96,7 +96,7 @@ def time_to_quality(
     within: float = WITHIN,
     marks_min: Sequence[float] = MARKS_MIN,
 ) -> list[dict[str, Any]]:
-    """One row per ``(method, schedule)`` curve (``{"wall_s", "val/mae", "step"}`` arrays).
+    """One row per ``(method, schedule)`` curve (``{"wall_s", "val/map_mae_m", "step"}`` arrays).
 
     ``t_within_s``: the first ``wall_s`` at which the MAE is within ``within`` of the
     method's best MAE over all its curves (``<= (1 + within) * best``; NaN if never);
@@ -327,7 +327,7 @@ def fit_command(
     (``trainer.max_time``), a map evaluation ``evals_per_epoch`` times an epoch, no logger;
     ``extra`` = further overrides.
 
-    ``holdout_stop > 0``: stop once the held-out altimeter MAE (``val/holdout_alt_mae``, a
+    ``holdout_stop > 0``: stop once the held-out altimeter MAE (``val/holdout_alt_mae_m``, a
     signal without MBES; ``data.holdout``) has not improved for that many evaluations
     (Lightning's ``EarlyStopping``), and map the SIREN of its lowest value
     (``model.select_best=holdout_alt_mae``). 0: off.
@@ -367,7 +367,7 @@ def fit_command(
         cmd += [
             "model.select_best=holdout_alt_mae",
             "+callbacks.holdout_stop={_target_:pytorch_lightning.callbacks.EarlyStopping,"
-            f"monitor:val/holdout_alt_mae,mode:min,patience:{holdout_stop},"
+            f"monitor:val/holdout_alt_mae_m,mode:min,patience:{holdout_stop},"
             "check_on_train_epoch_end:false}",
         ]
     if threads is not None:

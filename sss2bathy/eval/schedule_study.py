@@ -1,14 +1,14 @@
 """Schedule study: which SIREN schedule reaches the paper schedule's map error soonest.
 
 Every SIREN run writes ``metric_curve.csv`` (:mod:`sss2bathy.eval.metric_curve`):
-the map's ``val/mae`` (and ``val/grad_cs``) at each evaluation against its training
+the map's ``val/map_mae_m`` (and ``val/map_grad_cs``) at each evaluation against its training
 seconds. This module reads the runs of a study, takes the *reference* run's final MAE as
 the goal (the paper's schedule, ``siren_schedule=paper``), finds when every run first
 reaches it, and writes ``schedule_study.{md,json}`` and ``schedule_study.png`` (MAE over
 training time, log scale).
 
 Runs without ``metric_curve.csv`` (older runs) are read from their TensorBoard events
-(``val/mae`` against the event wall times, validation included).
+(``val/map_mae_m`` against the event wall times, validation included).
 
 A reference run that was stopped before its last epoch is reported as such: its last
 evaluated MAE is then the goal, and its wall time so far a lower bound.
@@ -33,7 +33,7 @@ from sss2bathy.utils.atomic import atomic_write_text, save_figure
 CURVE_FILE = "metric_curve.csv"
 
 
-def load_run_curve(run_dir: str | Path, key: str = "val/mae") -> dict[str, np.ndarray]:
+def load_run_curve(run_dir: str | Path, key: str = "val/map_mae_m") -> dict[str, np.ndarray]:
     """``{"epoch", "step", "train_s", "wall_s", key}`` arrays of one run (evaluations only).
 
     Raises:
@@ -76,7 +76,7 @@ def load_run_curve(run_dir: str | Path, key: str = "val/mae") -> dict[str, np.nd
 
 
 def time_to_reach(
-    curve: Mapping[str, np.ndarray], goal: float, key: str = "val/mae", clock: str = "train_s"
+    curve: Mapping[str, np.ndarray], goal: float, key: str = "val/map_mae_m", clock: str = "train_s"
 ) -> float:
     """First ``clock`` value at which ``curve[key] <= goal``; NaN if never reached."""
     hit = np.nonzero(np.asarray(curve[key]) <= goal)[0]
@@ -86,7 +86,7 @@ def time_to_reach(
 def study(
     runs: Mapping[str, str | Path],
     reference: str,
-    key: str = "val/mae",
+    key: str = "val/map_mae_m",
     clock: str = "train_s",
     reference_epochs: int | None = None,
 ) -> dict[str, Any]:

@@ -48,6 +48,7 @@ from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
 from sss2bathy.io.xtf import write_xtf
+from sss2bathy.metrics.bathy import MAP_TAGS
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.generate import generate_survey
 from sss2bathy.survey.model import (
@@ -517,7 +518,7 @@ def study_row(
     metrics = json.loads(metrics_path.read_text())
 
     def metric(name: str) -> float:
-        for key in (f"final/{name}", f"val/{name}"):
+        for key in (f"final/{name}", f"val/{MAP_TAGS.get(name, name)}"):
             v = metrics.get(key)
             if v is not None and math.isfinite(float(v)):
                 return float(v)

@@ -19,6 +19,21 @@ import numpy as np
 
 GRADIENT_EPS = 1e-6
 
+# logged names (``val/<tag>``) of a SIREN fit's map metrics (these and the held-out altimeter
+# scores of sss2bathy.data.holdout): what they measure and in which unit, so a map metric in
+# metres never shares a tag with the normal CNN's n_lat metrics (``val/nlat_*``). The
+# ``final/<name>`` keys of a run's metrics.json keep the plain names.
+MAP_TAGS = {
+    "mae": "map_mae_m",
+    "std": "map_std_m",
+    "grad_cs": "map_grad_cs",
+    "n_cells": "map_n_cells",
+    "holdout_alt_mae": "holdout_alt_mae_m",
+    "holdout_interp_mae": "holdout_interp_mae_m",
+    "holdout_ratio": "holdout_ratio",
+    "holdout_n": "holdout_n",
+}
+
 
 def _check(pred: np.ndarray, true: np.ndarray, region: np.ndarray | None) -> np.ndarray:
     pred, true = np.asarray(pred), np.asarray(true)

@@ -7,8 +7,9 @@ Batches are dicts (see ``sss2bathy.data`` windows): ``intensity [B,1,H,W] float3
 side, ping_start, bin_start [B] long`` and ``flipped [B] bool`` (unused here).
 
 Logged keys: ``{stage}/loss`` and each loss term (``{stage}/loss_na``, ``{stage}/loss_tv``),
-``{stage}/{mae,rel,rmse,delta1,delta2,delta3}`` for ``train`` and ``val``; test metrics are
-``test/{name}/...`` with one ``name`` per test dataloader (``datamodule.test_set_names``).
+``{stage}/nlat_{mae,rel,rmse,delta1,delta2,delta3}`` (n_lat, unitless; deltas in percent) for
+``train`` and ``val``; test metrics are ``test/{name}/nlat_...`` (losses ``test/{name}/loss``)
+with one ``name`` per test dataloader (``datamodule.test_set_names``).
 """
 
 from __future__ import annotations
@@ -21,11 +22,9 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-# re-exported for the targets of older configs and eval/report.py (until they name
-# sss2bathy.callbacks and sss2bathy.eval.cnn_table)
-from sss2bathy.callbacks import CNNTableWriter, NormalImageLogger, render_window_panel
+from sss2bathy.callbacks import NormalImageLogger
 from sss2bathy.callbacks.hparams import flatten
-from sss2bathy.eval.cnn_table import table_rows_from_metrics
+from sss2bathy.eval.cnn_table import NLAT_PREFIX
 from sss2bathy.losses.normal import NormalLoss
 from sss2bathy.metrics.normal import NormalMetrics
 from sss2bathy.modules.cnn_parts import (
@@ -109,8 +108,8 @@ class NormalCNNModule(pl.LightningModule):
             },
             logger=False,
         )
-        self.train_metrics = NormalMetrics(prefix="train/")
-        self.val_metrics = NormalMetrics(prefix="val/")
+        self.train_metrics = NormalMetrics(prefix=f"train/{NLAT_PREFIX}")
+        self.val_metrics = NormalMetrics(prefix=f"val/{NLAT_PREFIX}")
         self.test_metrics = nn.ModuleDict()
         self.final_metrics: dict[str, float] = {}
 
@@ -196,7 +195,7 @@ class NormalCNNModule(pl.LightningModule):
         # created after Lightning indexed the module's metrics: name their attribute path
         for base, metric in metrics.items(keep_base=True, copy_state=False):
             self.log(
-                f"{prefix}{base}",
+                f"{prefix}{NLAT_PREFIX}{base}",
                 metric,
                 on_step=False,
                 on_epoch=True,
@@ -250,12 +249,4 @@ class NormalCNNModule(pl.LightningModule):
         self.record_final_metrics()
 
 
-__all__ = [
-    "CNNTableWriter",
-    "NormalCNNModule",
-    "NormalImageLogger",
-    "describe_factory",
-    "net_config",
-    "render_window_panel",
-    "table_rows_from_metrics",
-]
+__all__ = ["NormalCNNModule"]

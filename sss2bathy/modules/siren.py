@@ -17,9 +17,11 @@ is built in ``__init__`` (checkpoints load into an identically shaped model) and
 is a persistent buffer (a loaded checkpoint keeps the frame it was trained with).
 
 Evaluation every ``eval_every_n_epochs`` epochs and at the last epoch
-(:class:`~sss2bathy.modules.siren_parts.MapScorer`): logged as ``val/mae``, ``val/std``,
-``val/grad_cs`` and the held-out altimeter scores; the latest is :attr:`latest_evaluation`
-(a frozen :class:`~sss2bathy.modules.siren_parts.MapEvaluation`, read by the callbacks).
+(:class:`~sss2bathy.modules.siren_parts.MapScorer`): logged as ``val/map_mae_m``,
+``val/map_std_m``, ``val/map_grad_cs`` and the held-out altimeter scores
+(``val/holdout_alt_mae_m``, ``val/holdout_interp_mae_m``, ``val/holdout_ratio``;
+:data:`sss2bathy.metrics.bathy.MAP_TAGS`); the latest is :attr:`latest_evaluation` (a
+frozen :class:`~sss2bathy.modules.siren_parts.MapEvaluation`, read by the callbacks).
 :meth:`configure_callbacks` adds the map export (``map.tif``, ``map.npz``,
 ``metrics.json``, PNGs into ``output_dir``; :class:`~sss2bathy.callbacks.SirenMapExport`)
 and, with ``log_images``, the TensorBoard map images.
@@ -56,7 +58,11 @@ from sss2bathy.modules.siren_parts import (
 
 log = logging.getLogger(__name__)
 
-VAL_KEYS = ("mae", "std", "grad_cs", "holdout_alt_mae", "holdout_interp_mae", "holdout_ratio")
+# logged every evaluation (metrics.bathy.MAP_TAGS: what and in which unit)
+VAL_TAGS = (
+    "map_mae_m", "map_std_m", "map_grad_cs",
+    "holdout_alt_mae_m", "holdout_interp_mae_m", "holdout_ratio",
+)  # fmt: skip
 
 
 def _positive_or_none(name: str, value: float | None) -> float | None:
@@ -251,10 +257,9 @@ class SirenModule(pl.LightningModule):
         if self.trainer.sanity_checking or not (epoch % self.eval_every_n_epochs == 0 or last):
             return
         self.latest_evaluation = evaluation = self.evaluate_map()
-        for key in VAL_KEYS:
-            value = evaluation.metrics.get(key)
-            if value is not None and math.isfinite(value):
-                self.log(f"val/{key}", value, batch_size=1)
+        for tag, value in evaluation.tags("val/").items():
+            if tag.split("/", 1)[1] in VAL_TAGS and math.isfinite(value):
+                self.log(tag, value, batch_size=1)
         self.best.track(self.siren, evaluation.metrics, self.current_epoch)
 
     def final_map(self) -> MapEvaluation:

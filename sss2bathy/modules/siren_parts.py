@@ -29,6 +29,7 @@ import torch
 
 from sss2bathy.data.holdout import AltimeterSplit, holdout_mae
 from sss2bathy.eval.maps import grid_over_bounds, map_metrics, siren_to_grid, track_region_mask
+from sss2bathy.metrics.bathy import MAP_TAGS
 from sss2bathy.survey import BathyGrid
 
 # metrics ``select_best`` may choose the final map by (lower is better; no MBES needed)
@@ -55,6 +56,10 @@ class MapEvaluation:
     truth: BathyGrid | None
     region: np.ndarray | None
     map_epoch: int | None = None
+
+    def tags(self, prefix: str = "val/") -> dict[str, float]:
+        """The metrics under their logged names (:data:`MAP_TAGS`), e.g. ``val/map_mae_m``."""
+        return {f"{prefix}{MAP_TAGS.get(k, k)}": v for k, v in self.metrics.items()}
 
 
 @dataclass

@@ -58,7 +58,7 @@ def test_metric_rows_come_from_the_current_epochs_evaluation_only():
     assert evaluation_metrics(_trainer([], epoch=0), module) == {}
     module.latest_evaluation = _evaluation(2)
     assert evaluation_metrics(_trainer([], epoch=3), module) == {}
-    assert evaluation_metrics(_trainer([], epoch=2), module) == {"val/mae": 0.2}
+    assert evaluation_metrics(_trainer([], epoch=2), module) == {"val/map_mae_m": 0.2}
     # modules without map evaluations: the trainer's val/* metrics
     trainer = SimpleNamespace(callback_metrics={"val/err": 0.5, "train/loss": 1.0})
     assert evaluation_metrics(trainer, SimpleNamespace()) == {"val/err": 0.5}
@@ -95,7 +95,7 @@ def test_test_metrics_table_keeps_full_names():
         "test/synthetic_d1_tiny:test/mae": 0.05,
         "test/synthetic_d1_tiny:test/constant/mae": 0.08,
         "test/synthetic_d2_tiny/mae": 0.07,
-        "val/mae": 1.0,
+        "val/map_mae_m": 1.0,
     }
     lines = metrics_table(metrics).splitlines()
     assert lines[0].split() == ["test", "set", "mae"]
@@ -105,7 +105,7 @@ def test_test_metrics_table_keeps_full_names():
         "synthetic_d1_tiny:test/constant": ["0.0800"],
         "synthetic_d2_tiny": ["0.0700"],
     }
-    assert metrics_table({"val/mae": 1.0}) == ""
+    assert metrics_table({"val/map_mae_m": 1.0}) == ""
 
 
 def test_siren_inputs_come_from_the_accessor_or_the_attributes():

@@ -117,7 +117,12 @@ def test_a_seed_sweep_and_a_cnn_run_tell_themselves_apart(tmp_path):
     assert cnn_hp["run/module"] == "NormalCNNModule" and cnn_hp["run/scale"] == "tiny"
     assert all(h["run/survey"] == "synthetic_d1_tiny" for h in hp.values())
     _, tags = hparams_experiment(outputs)
+    val = {}
     for run in runs:  # every run's own metrics are columns, with values in that run
         scalars = set(EventAccumulator(str(run)).Reload().Tags()["scalars"])
         final = {t for t in scalars if t.startswith(("final/", "test/"))}
         assert final and final <= tags, run
+        val[hp[run]["run/experiment"]] = {t for t in scalars if t.startswith("val/")}
+    # n_lat metrics and map metrics in metres never share a tag
+    assert "val/nlat_mae" in val["cnn"] and "val/map_mae_m" in val["siren_gt_n2d"]
+    assert val["cnn"] & val["siren_gt_n2d"] == set()

@@ -51,8 +51,8 @@ def test_eval_reproduces_the_fit_metrics_from_checkpoint_and_map(tmp):
     for source in (f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"map_path={run / 'map.tif'}"):
         out = tmp / f"eval_{source.split('=')[0]}"
         metrics = evaluate(_cfg("eval", tmp, [source]), out)
-        assert metrics["mae"] == pytest.approx(fitted["val/mae"], rel=1e-4)
-        assert metrics["grad_cs"] == pytest.approx(fitted["val/grad_cs"], rel=1e-4)
+        assert metrics["mae"] == pytest.approx(fitted["val/map_mae_m"], rel=1e-4)
+        assert metrics["grad_cs"] == pytest.approx(fitted["val/map_grad_cs"], rel=1e-4)
         assert (out / "map.tif").is_file() and (out / "error.png").is_file()
     with pytest.raises(ValueError, match="exactly one"):
         evaluate(_cfg("eval", tmp, []), tmp / "eval_none")

@@ -179,7 +179,7 @@ def test_a_run_with_many_loggers_writes_each_and_keeps_the_map_in_its_folder(tin
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = _only_run_folder(tiny_root)
     assert (run / "map.tif").is_file() and (run / "metrics.json").is_file()
-    assert "val/mae" in (run / "csv" / "metrics.csv").read_text().splitlines()[0]
+    assert "val/map_mae_m" in (run / "csv" / "metrics.csv").read_text().splitlines()[0]
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
     assert (tiny_root / "outputs" / "mlflow.db").is_file()
 

@@ -23,23 +23,23 @@ CONF = ROOT / "conf"
 
 # ------------------------------------------------------------------ fast: the fallback
 def test_optimized_metric_falls_back_to_the_holdout_score_without_mbes(caplog):
-    logged = {"train/loss": 0.5, HOLDOUT_METRIC: 0.25, "val/holdout_interp_mae": 0.3}
-    assert optimized_value("val/mae", {**logged, "val/mae": 0.1}, has_mbes=False) == (
-        "val/mae",
+    logged = {"train/loss": 0.5, HOLDOUT_METRIC: 0.25, "val/holdout_interp_mae_m": 0.3}
+    assert optimized_value("val/map_mae_m", {**logged, "val/map_mae_m": 0.1}, has_mbes=False) == (
+        "val/map_mae_m",
         0.1,
     )
     with caplog.at_level(logging.WARNING, logger="sss2bathy.train"):
-        assert optimized_value("val/mae", logged, has_mbes=False) == (HOLDOUT_METRIC, 0.25)
+        assert optimized_value("val/map_mae_m", logged, has_mbes=False) == (HOLDOUT_METRIC, 0.25)
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warnings) == 1 and "val/holdout_alt_mae" in warnings[0].getMessage()
+    assert len(warnings) == 1 and "val/holdout_alt_mae_m" in warnings[0].getMessage()
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="sss2bathy.train"):
-        assert optimized_value("val/mae", {"train/loss": 0.5}, has_mbes=False) == (None, None)
+        assert optimized_value("val/map_mae_m", {"train/loss": 0.5}, has_mbes=False) == (None, None)
     assert len([r for r in caplog.records if r.levelno == logging.WARNING]) == 1
     assert optimized_value(None, logged, has_mbes=False) == (None, None)
     # with MBES a metric that was not logged is a configuration error
-    with pytest.raises(KeyError, match="optimized_metric 'val/mae' was not logged"):
-        optimized_value("val/mae", logged, has_mbes=True)
+    with pytest.raises(KeyError, match="optimized_metric 'val/map_mae_m' was not logged"):
+        optimized_value("val/map_mae_m", logged, has_mbes=True)
 
 
 def test_map_config_picks_the_method_and_the_survey_name():
@@ -69,7 +69,7 @@ def test_map_summary_says_whether_the_fit_beat_interpolation(tmp_path):
     text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", metrics, False).summary())
     assert str(tmp_path / "map.tif") in text and str(tmp_path / "metrics.json") in text
     assert "0.100 m (fit) vs 0.200 m" in text and "ratio 0.50" in text and "beats" in text
-    worse = {"val/holdout_alt_mae": 0.3, "val/holdout_interp_mae": 0.2}
+    worse = {"val/holdout_alt_mae_m": 0.3, "val/holdout_interp_mae_m": 0.2}
     text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", worse, False).summary())
     assert "does NOT beat" in text
     text = "\n".join(MapResult(tmp_path, "siren_lambert", "s", {}, False).summary())
@@ -139,9 +139,9 @@ def test_sss2bathy_map_on_an_xtf_survey_without_mbes(tmp_path, tiny_xtf):
         assert (run / name).is_file()
         assert str(run / name) in proc.stdout  # printed where they are
     metrics = json.loads((run / "metrics.json").read_text())
-    for key in ("val/holdout_alt_mae", "val/holdout_interp_mae", "final/holdout_alt_mae"):
+    for key in ("val/holdout_alt_mae_m", "val/holdout_interp_mae_m", "final/holdout_alt_mae"):
         assert np.isfinite(metrics[key]), key
-    assert "val/mae" not in metrics  # no MBES
+    assert "val/map_mae_m" not in metrics  # no MBES
     assert metrics["final/holdout_n"] > 0
     assert "held-out altimeter MAE" in proc.stdout
     assert (tmp_path / "data" / "xtf_lines" / "survey.yaml").is_file()  # the imported survey
@@ -150,7 +150,7 @@ def test_sss2bathy_map_on_an_xtf_survey_without_mbes(tmp_path, tiny_xtf):
 @pytest.mark.slow
 @pytest.mark.parametrize("experiment", ["siren_heights_only", "siren_lambert"])
 def test_sss2bathy_train_without_mbes_exits_0(tmp_path, tiny_xtf, experiment):
-    """The issue's failure: optimized_metric val/mae with no MBES used to raise a KeyError."""
+    """The issue's failure: optimized_metric val/map_mae_m with no MBES used to raise a KeyError."""
     folder, crs = tiny_xtf
     run = tmp_path / "run"
     proc = _run(
@@ -171,9 +171,9 @@ def test_sss2bathy_train_without_mbes_exits_0(tmp_path, tiny_xtf, experiment):
         tmp_path,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "returning val/holdout_alt_mae" in proc.stderr + proc.stdout
+    assert "returning val/holdout_alt_mae_m" in proc.stderr + proc.stdout
     metrics = json.loads((run / "metrics.json").read_text())
-    assert np.isfinite(metrics["val/holdout_alt_mae"])
+    assert np.isfinite(metrics["val/holdout_alt_mae_m"])
     assert (run / "map.tif").is_file() and (run / "map.png").is_file()
 
 

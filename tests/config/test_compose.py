@@ -255,7 +255,7 @@ def test_optuna_search_targets_existing_keys():
         )
     sweeper = cfg.hydra.sweeper
     assert sweeper._target_.endswith("OptunaSweeper") and sweeper.direction == "minimize"
-    assert cfg.optimized_metric == "val/mae"
+    assert cfg.optimized_metric == "val/nlat_mae"
     for key in sweeper.params:
         assert OmegaConf.select(cfg, key) is not None, f"searched key {key} is not in the config"
 

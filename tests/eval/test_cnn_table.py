@@ -55,16 +55,16 @@ def test_constant_rows_and_skill_in_markdown_and_csv(tmp_path):
 def test_table_rows_from_metrics_groups_complete_rows_only():
     metrics = {f"test/d1/{k}": v for k, v in ROW.items()}
     metrics.update({f"test/{k}": v for k, v in ROW.items()})
-    metrics.update({"test/d2/mae": 0.1, "val/mae": 0.2, "test/d1/constant/mae": 0.3})
+    metrics.update({"test/d2/nlat_mae": 0.1, "val/nlat_mae": 0.2, "test/d1/constant/nlat_mae": 0.3})
     rows = table_rows_from_metrics(metrics)
     assert rows == {"d1": pytest.approx(ROW), "test": pytest.approx(ROW)}
 
 
 def test_constant_rows_round_trip_through_metrics_and_errors():
     row = {**CONST, "value": -0.01}
-    metrics = {"test/d1:test/mae": 0.05, **constant_metric_keys("d1:test", row)}
+    metrics = {"test/d1:test/nlat_mae": 0.05, **constant_metric_keys("d1:test", row)}
     assert constant_rows_from_metrics(metrics) == {"d1:test": pytest.approx(row)}
-    del metrics["test/d1:test/constant/delta3"]
+    del metrics["test/d1:test/constant/nlat_delta3"]
     assert constant_rows_from_metrics(metrics) == {}
     with pytest.raises(ValueError, match=r"constant_rows\['d9'\].*CNN rows"):
         cnn_table_markdown({"d1": ROW}, {"d9": row})
@@ -179,11 +179,11 @@ def test_writer_scores_training_mean_and_writes_bias(tmp_path):
     err = [np.abs(writer.constant - ln.n_lat[ln.valid]) for ln in dm.test_sets[0].lines]
     const_mae = np.concatenate(err).mean()
     fm = model.final_metrics
-    assert fm["test/d1:test/constant/mae"] == pytest.approx(const_mae, rel=1e-5)
+    assert fm["test/d1:test/constant/nlat_mae"] == pytest.approx(const_mae, rel=1e-5)
     assert fm["test/d1:test/constant/value"] == pytest.approx(expect, abs=1e-6)
     assert fm["data/n_train_lines"] == 2 and fm["data/n_val_lines"] == 1
     md = writer.paths[0].read_text()
-    skill = fm["test/d1:test/mae"] / const_mae
+    skill = fm["test/d1:test/nlat_mae"] / const_mae
     assert f"| {skill:.2f} |" in md and f"constant {writer.constant:+.4f}" in md
     bias = list(csv.DictReader(io.StringIO((tmp_path / "cnn_bias.csv").read_text())))
     assert [(r["line"], r["side"]) for r in bias] == [

@@ -27,14 +27,14 @@ SETS = ("d1_lc:test", "d2:all")
 
 def fake_run(folder: Path, n_train: int, mae: dict, const: dict, train_s: float) -> Path:
     folder.mkdir(parents=True)
-    metrics = {"val/mae": 0.1, "data/n_train_lines": n_train - 1.0, "data/n_val_lines": 1.0}
+    metrics = {"val/nlat_mae": 0.1, "data/n_train_lines": n_train - 1.0, "data/n_val_lines": 1.0}
     for name in mae:
-        metrics[f"test/{name}/mae"] = mae[name]
-        metrics[f"test/{name}/rmse"] = 2 * mae[name]
-        metrics[f"test/{name}/constant/mae"] = const[name]
+        metrics[f"test/{name}/nlat_mae"] = mae[name]
+        metrics[f"test/{name}/nlat_rmse"] = 2 * mae[name]
+        metrics[f"test/{name}/constant/nlat_mae"] = const[name]
     (folder / "metrics.json").write_text(json.dumps(metrics))
     (folder / "metric_curve.csv").write_text(
-        f"epoch,step,wall_s,train_s,lr,val/mae\n0,5,1.0,0.5,0.001,0.2\n1,10,"
+        f"epoch,step,wall_s,train_s,lr,val/nlat_mae\n0,5,1.0,0.5,0.001,0.2\n1,10,"
         f"{train_s + 1},{train_s},0.001,0.1\n"
     )
     (folder / RUN_RECORD).write_text(json.dumps({"n_train": n_train, "run_s": train_s + 9}))
@@ -73,9 +73,9 @@ def test_reader_names_what_is_missing(tmp_path):
     with pytest.raises(ValueError, match="n_train=8 was already read"):
         read_runs([run, dup])
     metrics = json.loads((run / "metrics.json").read_text())
-    del metrics[f"test/{SETS[0]}/constant/mae"]
+    del metrics[f"test/{SETS[0]}/constant/nlat_mae"]
     (run / "metrics.json").write_text(json.dumps(metrics))
-    with pytest.raises(ValueError, match="constant/mae"):
+    with pytest.raises(ValueError, match="constant/nlat_mae"):
         read_runs([run])
     (run / "metric_curve.csv").unlink()
     with pytest.raises(ValueError, match="metric_curve.csv: expected"):

@@ -24,7 +24,7 @@ from sss2bathy.eval.paper_cpu_study import (
 def _curve(wall, mae):
     return {
         "wall_s": np.asarray(wall, float),
-        "val/mae": np.asarray(mae, float),
+        "val/map_mae_m": np.asarray(mae, float),
         "step": np.arange(1, len(wall) + 1, dtype=float) * 10,
     }
 

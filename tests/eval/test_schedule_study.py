@@ -20,7 +20,7 @@ def _run(tmp_path, name, maes, dt):
             "wall_s": dt * (i + 1) + 0.5,
             "train_s": dt * (i + 1),
             "lr": 1e-3,
-            "val/mae": m,
+            "val/map_mae_m": m,
         }
         for i, m in enumerate(maes)
     ]
@@ -31,7 +31,7 @@ def _run(tmp_path, name, maes, dt):
 
 
 def test_time_to_reach_first_crossing_and_never():
-    curve = {"train_s": np.array([1.0, 2.0, 3.0]), "val/mae": np.array([0.5, 0.3, 0.2])}
+    curve = {"train_s": np.array([1.0, 2.0, 3.0]), "val/map_mae_m": np.array([0.5, 0.3, 0.2])}
     assert time_to_reach(curve, 0.3) == 2.0
     assert time_to_reach(curve, 0.6) == 1.0
     assert math.isnan(time_to_reach(curve, 0.1))

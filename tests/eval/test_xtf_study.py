@@ -147,7 +147,7 @@ def test_study_row_reads_final_metrics(tmp_path):
     (run / "metrics.json").write_text(
         json.dumps(
             {
-                "val/holdout_alt_mae": 9.0,
+                "val/holdout_alt_mae_m": 9.0,
                 "final/holdout_alt_mae": 0.25,
                 "final/holdout_interp_mae": 0.5,
                 "final/holdout_n": 120.0,

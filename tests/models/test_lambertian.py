@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from sss2bathy.callbacks import LambertCurvesLogger
 from sss2bathy.geometry import arc_point, attitude_to_rotation
 from sss2bathy.models.lambertian import (
     LambertianSensorModel,
@@ -19,7 +20,6 @@ from sss2bathy.models.lambertian import (
     waterfall_image,
 )
 from sss2bathy.models.sensors import ArcGeometry
-from sss2bathy.modules.lambert_callbacks import LambertCurvesLogger
 
 TILT_DEG, BEAM_DEG = 30.0, 60.0
 R_MIN, R_MAX = 2.0, 60.0
@@ -431,7 +431,9 @@ def test_bin_mask_threshold_near_range_and_mask():
 @pytest.mark.parametrize(
     "kw, match",
     [
-        (dict(beam_width_deg=0.0), "beam_width_deg"),
+        (dict(beam_width_deg=0.0), r"^beam_width_deg: expected a value in \(0, 180\) degrees"),
+        (dict(tilt_deg=95.0), r"^tilt_deg: expected a value in \[-90, 90\] degrees .*95.0$"),
+        (dict(shadow_threshold=-0.1), r"^shadow_threshold: expected a number >= 0, found -0.1$"),
         (dict(range_min_m=10.0, range_max_m=5.0), "range_min_m"),
         (dict(n_beam_knots=1), "n_beam_knots"),
         (dict(reflectivity="rocks"), "reflectivity"),
@@ -462,6 +464,8 @@ def test_domain_from_data_when_config_leaves_it_null():
         late.set_domain(theta_limits_rad=(1.0, 0.5))
     with pytest.raises(ValueError, match="tilt_deg, beam_width_deg"):
         LambertianSensorModel(tilt_deg=30.0)
+    with pytest.raises(ValueError, match="^tilt_deg: expected"):  # its range before the pair
+        LambertianSensorModel(tilt_deg=95.0)
 
 
 def test_setup_from_data_fills_only_null_spans():

@@ -72,7 +72,9 @@ def test_training_clock_excludes_validation(tmp_path):
 
 
 def test_round_trip_and_bad_files(tmp_path):
-    rows = [{"epoch": 0, "step": 5, "wall_s": 1.5, "train_s": 1.0, "lr": 1e-3, "val/mae": 0.2}]
+    rows = [
+        {"epoch": 0, "step": 5, "wall_s": 1.5, "train_s": 1.0, "lr": 1e-3, "val/map_mae_m": 0.2}
+    ]
     rows.append({**rows[0], "epoch": 1, "val/cs": 0.9})
     write_curve(tmp_path / "c.csv", rows)
     back = read_curve(tmp_path / "c.csv")

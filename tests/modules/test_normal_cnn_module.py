@@ -96,21 +96,21 @@ def test_fast_dev_run_from_composed_config_logs_every_key():
     dm = TinyWindows()
     trainer.fit(model, datamodule=dm)
     metrics = trainer.callback_metrics
-    for key in ["train/loss", "train/loss_na", "train/loss_tv", "train/mae"]:
+    for key in ["train/loss", "train/loss_na", "train/loss_tv", "train/nlat_mae"]:
         assert key in metrics and math.isfinite(float(metrics[key])), key
-    for name in ["mae", "rel", "rmse", "delta1", "delta2", "delta3", "loss"]:
+    for name in ["nlat_mae", "nlat_rel", "nlat_rmse", "nlat_delta1", "nlat_delta2", "loss"]:
         assert f"val/{name}" in metrics, name
     assert float(metrics["train/loss_tv"]) > 0
     trainer.test(model, datamodule=dm)
     for test_set in TEST_NAMES:
-        for name in ["mae", "rel", "rmse", "delta1", "delta2", "delta3", "loss"]:
+        for name in ["nlat_mae", "nlat_rel", "nlat_rmse", "nlat_delta3", "loss"]:
             assert f"test/{test_set}/{name}" in trainer.callback_metrics
     # the two test sets hold different windows: their metrics must differ
-    assert float(trainer.callback_metrics[f"test/{TEST_NAMES[0]}/mae"]) != float(
-        trainer.callback_metrics[f"test/{TEST_NAMES[1]}/mae"]
+    assert float(trainer.callback_metrics[f"test/{TEST_NAMES[0]}/nlat_mae"]) != float(
+        trainer.callback_metrics[f"test/{TEST_NAMES[1]}/nlat_mae"]
     )
     assert set(table_rows_from_metrics(trainer.callback_metrics)) == set(TEST_NAMES)
-    assert f"test/{TEST_NAMES[1]}/delta1" in model.final_metrics
+    assert f"test/{TEST_NAMES[1]}/nlat_delta1" in model.final_metrics
 
 
 def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
@@ -160,7 +160,7 @@ def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
     assert start.hparams["run/overrides"].string_value == "seed=0"
     assert start.hparams["run/module"].string_value == "NormalCNNModule"
     scalars = events.Tags()["scalars"]
-    assert "val/mae" in scalars and f"test/{TEST_NAMES[0]}/mae" in scalars
+    assert "val/nlat_mae" in scalars and f"test/{TEST_NAMES[0]}/nlat_mae" in scalars
 
     ckpt_path = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt_path)
@@ -170,7 +170,7 @@ def test_images_hparams_scheduler_checkpoint_and_table(tmp_path):
     md_path, csv_path = table.paths
     text = md_path.read_text()
     assert PAPER_LABEL in text and "0.0221" in text and TEST_NAMES[1] in text
-    mae = float(trainer.callback_metrics[f"test/{TEST_NAMES[0]}/mae"])
+    mae = float(trainer.callback_metrics[f"test/{TEST_NAMES[0]}/nlat_mae"])
     assert f"{mae:.4f}" in text
     assert len(csv_path.read_text().strip().splitlines()) == 1 + 2 + 2
 

@@ -226,12 +226,12 @@ def test_holdout_scores_are_logged_beside_the_mbes_ones(tmp_path, tiny_survey):
     # the fit never saw the held-out points
     assert dm.altimeter.shape[0] + split.n_held == dm.table.n_pings - 2  # 2 missing readings
     m = trainer.callback_metrics
-    assert "val/mae" in m and np.isfinite(float(m["val/holdout_alt_mae"]))
-    assert float(m["val/holdout_interp_mae"]) == pytest.approx(split.interp_mae, abs=1e-6)
+    assert "val/map_mae_m" in m and np.isfinite(float(m["val/holdout_alt_mae_m"]))
+    assert float(m["val/holdout_interp_mae_m"]) == pytest.approx(split.interp_mae, abs=1e-6)
     with torch.no_grad():
         z = model.siren.height(torch.from_numpy(split.held[:, :2].astype(np.float32)))
     expected = np.abs(z.numpy() - split.held[:, 2]).mean()
-    assert float(m["val/holdout_alt_mae"]) == pytest.approx(expected, rel=1e-4, abs=1e-5)
+    assert float(m["val/holdout_alt_mae_m"]) == pytest.approx(expected, rel=1e-4, abs=1e-5)
     final = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert final["final/holdout_alt_mae"] == pytest.approx(expected, rel=1e-4, abs=1e-5)
     assert final["final/holdout_n"] == split.n_held
@@ -259,7 +259,7 @@ def test_select_best_keeps_the_siren_of_the_lowest_holdout_score():
     for k, v in module.siren.state_dict().items():
         assert torch.equal(v, first[k]), k
     with pytest.raises(ValueError, match="select_best: expected one of"):
-        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, select_best="val/mae")
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, select_best="val/map_mae_m")
 
 
 def test_select_best_through_hydra_writes_the_chosen_epoch(tmp_path, tiny_survey):

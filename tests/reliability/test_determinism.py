@@ -54,7 +54,7 @@ def test_cnn_same_seed_same_fit_and_deterministic_option(tmp_path, hills_survey)
     assert torch.is_deterministic_algorithms_warn_only_enabled()
     _assert_identical(a, b)
     other, _ = _fit(base + ["seed=7"], tmp_path / "c")
-    assert other["val/mae"] != a[0]["val/mae"]
+    assert other["val/nlat_mae"] != a[0]["val/nlat_mae"]
 
 
 def test_seed_reaches_the_data_modules(tmp_path, plane_survey):

@@ -171,7 +171,7 @@ def test_cnn_fit_with_dropout_resumes_exactly_from_another_run_folder(
     # ckpt_path=<run folder>: that run's last.ckpt, continued in a new folder
     m_cont = _run(base + [f"ckpt_path={part}"], cont)
     _assert_same_run(full, cont, m_full, m_cont)
-    assert m_full["test/hills:test/mae"] == m_cont["test/hills:test/mae"]
+    assert m_full["test/hills:test/nlat_mae"] == m_cont["test/hills:test/nlat_mae"]
 
 
 # ------------------------------------------------------------------ real signals

@@ -398,8 +398,8 @@ def test_tiny_end_to_end_over_a_cropped_real_grid_is_scored_against_it(tmp_path,
     import json
 
     metrics = json.loads((run / "metrics.json").read_text())
-    assert np.isfinite(metrics["val/mae"]) and metrics["val/mae"] < 2.0
-    assert np.isfinite(metrics["val/grad_cs"])
+    assert np.isfinite(metrics["val/map_mae_m"]) and metrics["val/map_mae_m"] < 2.0
+    assert np.isfinite(metrics["val/map_grad_cs"])
     from sss2bathy.survey import Survey
 
     survey = Survey.load(tmp_path / "data" / "real_crop_tiny")

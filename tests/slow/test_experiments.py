@@ -73,7 +73,7 @@ def cnn_run(workdir):
 
 def test_cnn_experiment_writes_table_and_checkpoint(cnn_run):
     metrics = json.loads((cnn_run / "metrics.json").read_text())
-    assert any(k.startswith("test/") and k.endswith("/mae") for k in metrics)
+    assert any(k.startswith("test/") and k.endswith("/nlat_mae") for k in metrics)
     assert (cnn_run / "cnn_table.md").is_file()
     assert (cnn_run / "checkpoints" / "last.ckpt").is_file()
 
@@ -101,7 +101,7 @@ def test_every_siren_experiment_runs_in_a_multirun(cnn_run, workdir, absent):
         assert (info.parent / "map.tif").is_file()
     assert set(found) == set(runnable)
     for name, metrics in found.items():
-        assert 0 <= metrics["val/mae"] < 10, (name, metrics)
+        assert 0 <= metrics["val/map_mae_m"] < 10, (name, metrics)
 
 
 def test_report_from_tiny_runs(cnn_run, workdir):
@@ -141,7 +141,11 @@ def test_ddp_two_processes_match_one(cnn_run, workdir):
         )
         results[trainer] = json.loads((out / "metrics.json").read_text())
     one, two = results["cpu"], results["ddp_cpu"]
-    keys = [k for k in one if k.startswith("test/") and k.endswith(("/mae", "/rmse", "/delta1"))]
+    keys = [
+        k
+        for k in one
+        if k.startswith("test/") and k.endswith(("/nlat_mae", "/nlat_rmse", "/nlat_delta1"))
+    ]
     assert keys
     for key in keys:
         # DistributedSampler pads the last batch with repeated windows: a small tolerance
