@@ -145,6 +145,16 @@ learning-curve: install ## CNN test MAE vs training lines / time, one survey, fi
 	$(BIN)/python -m sss2bathy.eval.learning_curve --n-train $(LC_N_TRAIN) --scale $(SCALE) \
 		--torch-threads $${TORCH_THREADS:-1} --out outputs/learning_curve $(ARGS)
 
+.PHONY: real1m-figure real1m
+real1m-figure: install ## Issue 19: the synthetic_real_1m survey (real 1 m MBES grid as terrain) + hillshade/waterfall figure -> outputs/figures/synthetic_real_1m.png
+	$(BIN)/sss2bathy-prepare data/survey=synthetic_real_1m scale=$(SCALE) $(ARGS)
+	$(BIN)/python -m sss2bathy.sim.real_figure data/synthetic_real_1m_$(SCALE) outputs/figures/synthetic_real_1m.png
+
+real1m: install ## Issue 19 targets on the real 1 m grid: SIREN GT-N2d, CNN-N2d, Lambert, heights-only, one fit at a time (CNN-N2d needs a CNN run)
+	for e in gt_n2d cnn_n2d lambert heights_only; do \
+		$(BIN)/sss2bathy-train experiment=real1m_siren_$$e scale=$(SCALE) torch_threads=1 $(ARGS) || exit 1; \
+	done
+
 tb: install ## TensorBoard on outputs/
 	$(BIN)/tensorboard --logdir outputs/ --bind_all
 
