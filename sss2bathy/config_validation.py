@@ -10,14 +10,15 @@ One system, two halves, both run by ``sss2bathy-train`` before any data is made:
   Whole groups with a config class of their own are checked by constructing it here: a
   synthetic ``data.survey`` (:class:`~sss2bathy.sim.config.SyntheticSurveyConfig`, every key,
   test surveys included), ``data.drape`` (:class:`~sss2bathy.draping.DrapeConfig`),
-  ``data.sonar_mask``, an xtf survey by the importer's checks;
-* :data:`RULES`, ``(dotted key, predicate, expectation)``, for what no constructor sees:
-  top-level run keys (``seed``, ``deterministic``, ``guard.*``), keys of third-party
-  constructors (Lightning's trainer and checkpoints, torch's optimizers and schedulers), of
-  objects a module builds itself from a ``_partial_`` node (``model.net``, ``model.siren``,
-  ``model.loss``), keys whose constructor does not check them yet, and the cross-key rules
-  in :func:`validate_config`. A rule whose key is absent from the composed config (or null)
-  is skipped. Enumerations are imported from the module that owns them (:class:`_OneOf`).
+  ``data.sonar_mask``, an xtf survey by the importer's own checks
+  (:func:`~sss2bathy.io.xtf_survey.validate_xtf_config`);
+* :data:`RULES`, ``(dotted key, predicate, expectation)``, for what no constructor of ours
+  sees: top-level run keys (``seed``, ``deterministic``, ``guard.*``, ``scale.siren.*``),
+  keys of third-party constructors (Lightning's trainer and checkpoints, torch's optimizers
+  and schedulers), the few module keys whose constructor does not check them yet, and the
+  cross-key rules in :func:`validate_config`. A rule whose key is absent from the composed
+  config (or null) is skipped. Enumerations are imported from the module that owns them
+  (:class:`_OneOf`).
 
 Checks that need the data (split names, window size vs the lines' pings) run in the data
 modules' ``setup`` and name the config key too.
@@ -48,20 +49,9 @@ def _num(pred: Callable[[float], bool]) -> Callable[[Any], bool]:
 
 positive = _num(lambda v: v > 0)
 non_negative = _num(lambda v: v >= 0)
-fraction = _num(lambda v: 0 <= v < 1)
-beam_width = _num(lambda v: 0 < v < 180)
-tilt = _num(lambda v: -90 <= v <= 90)
 positive_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 0  # noqa: E731
 non_negative_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0  # noqa: E731
 boolean = lambda v: isinstance(v, bool)  # noqa: E731
-
-
-def one_of(*choices: Any) -> Callable[[Any], bool]:
-    return lambda v: v in choices
-
-
-def _enum(*choices: Any) -> tuple[Callable[[Any], bool], str]:
-    return one_of(*choices), f"one of {list(choices)}"
 
 
 class _OneOf:
@@ -93,72 +83,32 @@ def _gamma(v: Any) -> bool:
 
 
 RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
+    # top-level run keys (conf/train.yaml): no constructor sees them
     ("seed", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
     ("torch_threads", positive_int, "a positive integer or null"),
-    ("trainer.max_epochs", lambda v: v == -1 or positive_int(v), "a positive integer or -1"),
-    ("data.batch_pings", positive_int, "a positive integer"),
-    ("data.altimeter_points", positive_int, "a positive integer"),
-    ("data.window_pings", positive_int, "a positive integer"),
-    ("data.window_bins", positive_int, "a positive integer"),
-    ("data.min_valid_fraction", _num(lambda v: 0 <= v <= 1), "a fraction in [0, 1]"),
-    ("data.val_fraction", fraction, "a fraction in [0, 1)"),
-    ("data.survey.beam_width_deg", beam_width, "a value in (0, 180) degrees"),
-    ("data.survey.tilt_deg", tilt, "a value in [-90, 90] degrees"),
-    ("data.survey.n_bins", positive_int, "a positive integer"),
-    ("data.survey.mbes_cell_size", positive, "a positive number (m)"),
-    ("model.eval_cell_m", positive, "a positive number (m)"),
-    ("model.sensor.shadow_threshold", non_negative, "a number >= 0"),
-    ("model.optimizer.lr", positive, "a positive learning rate"),
-    # run control (conf/train.yaml, callbacks, trainer)
     ("deterministic", boolean, "true or false"),
     ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
-    ("callbacks.epoch_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
-    ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
+    ("scale.siren.steps_per_epoch", positive_int, "a positive integer or null"),
+    ("scale.siren.fast_steps_per_epoch", positive_int, "a positive integer"),
+    # third-party constructors: Lightning's trainer and checkpoints, torch's optimizers
+    ("trainer.max_epochs", lambda v: v == -1 or positive_int(v), "a positive integer or -1"),
     ("trainer.min_epochs", non_negative_int, "an integer >= 0"),
     ("trainer.check_val_every_n_epoch", positive_int, "a positive integer or null"),
     ("trainer.log_every_n_steps", positive_int, "a positive integer"),
     ("trainer.accumulate_grad_batches", positive_int, "a positive integer"),
     ("trainer.gradient_clip_val", non_negative, "a number >= 0 or null"),
-    # data modules (conf/data)
-    ("data.flip_augment", boolean, "true or false"),
-    ("data.need_intensity", boolean, "true or false"),
-    ("scale.siren.steps_per_epoch", positive_int, "a positive integer or null"),
-    ("scale.siren.fast_steps_per_epoch", positive_int, "a positive integer"),
-    ("data.z_margin", non_negative, "a fraction >= 0"),
-    ("data.z_margin_m", non_negative, "a number >= 0 (m)"),
-    ("data.window.window_pings", positive_int, "a positive integer"),
-    ("data.window.window_bins", positive_int, "a positive integer"),
-    ("data.window.overlap", fraction, "a fraction in [0, 1)"),
-    # the normal CNN (conf/model/normal_cnn.yaml, conf/loss)
-    ("model.compile", boolean, "true or false"),
-    ("model.loss.kind", *_choices("sss2bathy.losses.normal", "KINDS")),
-    ("model.loss.base", *_choices("sss2bathy.losses.normal", "BASES")),
-    ("model.loss.beta", positive, "a positive number"),
-    ("model.loss.tv_across_track", non_negative, "a weight >= 0"),
-    ("model.loss.tv_along_track", non_negative, "a weight >= 0"),
+    ("callbacks.epoch_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
+    ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
+    ("model.optimizer.lr", positive, "a positive learning rate"),
     ("model.scheduler.gamma", _gamma, "a decay factor in (0, 1]"),
-    # the SIREN fits (conf/model/siren_*.yaml)
-    ("model.siren.precision", *_choices("sss2bathy.models.siren", "PRECISIONS")),
-    ("model.siren.chunk", positive_int, "a positive number of points or null"),
+    # the LightningModules' own keys (sss2bathy.modules), until their constructors check them
+    ("model.compile", boolean, "true or false"),
+    ("model.eval_cell_m", positive, "a positive number (m)"),
     ("model.region_radius_m", positive, "a positive number (m) or null"),
     ("model.encoding_lr", positive, "a positive learning rate or null"),
-    ("model.sensor.tilt_deg", tilt, "a value in [-90, 90] degrees or null"),
-    ("model.sensor.beam_width_deg", beam_width, "a value in (0, 180) degrees or null"),
-    # real surveys (conf/data/survey/xtf.yaml) beyond the importer's own checks
-    ("data.survey.frequency_hz", positive, "a positive frequency (Hz) or null"),
-    ("data.survey.sound_speed_mps", positive, "a positive speed (m/s) or null"),
-    ("data.survey.mbes_z_positive", *_enum("up", "down")),
-    ("data.survey.mbes_statistic", *_enum("mean", "median")),
-    ("data.survey.mbes_crs_mismatch", *_choices("sss2bathy.io.grids", "CRS_MISMATCH")),
-    ("data.survey.missing_attitude", *_enum("error", "track")),
-    ("data.survey.channel_pair", non_negative_int, "an integer >= 0"),
-    ("data.survey.max_jump_m", positive, "a positive distance (m)"),
-    ("data.survey.max_speed_mps", positive, "a positive speed (m/s)"),
-    ("data.survey.max_nav_gap_s", positive, "a positive duration (s)"),
-    ("data.survey.min_first_return_m", non_negative, "a distance >= 0 (m)"),
-    ("data.survey.blanking_m", non_negative, "a distance >= 0 (m)"),
-    ("data.survey.auto_blanking", boolean, "true or false"),
-    ("data.survey.altitude_tolerance_m", positive, "a positive distance (m) or null"),
+    # the SIREN a module builds from its model.siren factory, until Siren checks them
+    ("model.siren.precision", *_choices("sss2bathy.models.siren", "PRECISIONS")),
+    ("model.siren.chunk", positive_int, "a positive number of points or null"),
 ]
 
 
@@ -201,10 +151,10 @@ def _validate_survey(survey: Any, where: str) -> None:
         except ValueError as err:
             raise _group_error(err, ROOT, where) from None
     elif survey.get("kind") == "xtf" and where == "data.survey":
-        from sss2bathy.io.xtf_survey import _validate
+        from sss2bathy.io.xtf_survey import validate_xtf_config
 
         try:
-            _validate(survey)
+            validate_xtf_config(survey)
         except ValueError as err:
             raise _group_error(err) from None
 

@@ -55,12 +55,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 #: ``(rule, importing file relative to sss2bathy/, imported module + name)``: known violations
 #: being fixed in parallel (issue #17). Empty it as they go; an entry that no longer occurs
 #: fails.
-KNOWN_VIOLATIONS: frozenset[tuple[str, str, str]] = frozenset(
-    {
-        # validation moves into the constructors (H4)
-        ("private", "config_validation.py", "sss2bathy.io.xtf_survey._validate"),
-    }
-)
+KNOWN_VIOLATIONS: frozenset[tuple[str, str, str]] = frozenset()
 
 
 #: ``(importing module, imported module)`` edges of known cycles between the modules of one

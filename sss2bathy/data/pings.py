@@ -65,6 +65,7 @@ from sss2bathy.data.sources import load_survey, survey_folder
 from sss2bathy.data.windows import EpochSampler, ResumableDataLoader
 from sss2bathy.draping import drape_survey
 from sss2bathy.survey import BathyGrid, SensorParams, Survey
+from sss2bathy.utils.checks import require_bool, require_int, require_number
 
 log = logging.getLogger(__name__)
 
@@ -301,6 +302,26 @@ class PingBatches(Dataset):
         return batch
 
 
+def check_window(window: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The CNN's window settings of ``data.window`` as a plain dict (``None``: those stored
+    in the checkpoint), its values checked: ``window_pings`` a positive integer,
+    ``window_bins`` a positive integer or null (the lines' bins), ``overlap`` in [0, 1)."""
+    if window is None:
+        return None
+    if not isinstance(window, Mapping):
+        raise ValueError(f"window: expected a mapping or null, found {window!r}")
+    window = {str(k): v for k, v in window.items()}
+    if "window_pings" in window:
+        require_int("window.window_pings", window["window_pings"])
+    if window.get("window_bins") is not None:
+        require_int("window.window_bins", window["window_bins"])
+    if "overlap" in window:
+        require_number(
+            "window.overlap", window["overlap"], lambda v: 0 <= v < 1, "a fraction in [0, 1)"
+        )
+    return window
+
+
 # ----------------------------------------------------------- held-out altimeter points
 HOLDOUT_KEYS = ("fraction", "block_pings", "seed")
 
@@ -396,9 +417,12 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             )
         if cnn_checkpoint == "latest" and not cnn_runs_dir:
             raise ValueError("cnn_runs_dir: expected the CNN runs folder for cnn_checkpoint=latest")
-        for name, value in (("batch_pings", batch_pings), ("altimeter_points", altimeter_points)):
-            if int(value) < 1:
-                raise ValueError(f"{name}: expected a positive count, found {value}")
+        require_int("batch_pings", batch_pings)
+        require_int("altimeter_points", altimeter_points)
+        require_bool("need_intensity", need_intensity)
+        require_number("z_margin", z_margin, lambda v: v >= 0, "a fraction >= 0")
+        require_number("z_margin_m", z_margin_m, lambda v: v >= 0, "a number >= 0 (m)")
+        window = check_window(window)
         if steps_per_epoch is not None and int(steps_per_epoch) < 1:
             raise ValueError(f"steps_per_epoch: expected None or >= 1, found {steps_per_epoch}")
         self.survey_cfg = survey

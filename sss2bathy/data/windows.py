@@ -51,6 +51,7 @@ from sss2bathy.data.masks import (
 )
 from sss2bathy.draping import DrapeConfig, DrapedLine, drape_survey
 from sss2bathy.survey import SidescanLine, Survey
+from sss2bathy.utils.checks import require_bool, require_int, require_number
 
 log = logging.getLogger(__name__)
 
@@ -482,14 +483,18 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         ]
         drape_map = None if drape is None else _to_dict(drape, "drape")
         self.drape_cfg = DrapeConfig.coerce(drape_map)
-        if not (0.0 < val_fraction < 1.0):
-            raise ValueError(f"val_fraction: expected a fraction in (0, 1), found {val_fraction}")
-        if not (isinstance(batch_size, int) and batch_size >= 1):
-            raise ValueError(f"batch_size: expected a positive integer, found {batch_size!r}")
-        if not (isinstance(num_workers, int) and num_workers >= 0):
-            raise ValueError(f"num_workers: expected an integer >= 0, found {num_workers!r}")
-        if not (0.0 <= overlap < 1.0):
-            raise ValueError(f"overlap: expected a fraction in [0, 1), found {overlap!r}")
+        require_int("window_pings", window_pings)
+        if window_bins is not None:
+            require_int("window_bins", window_bins, expected="a positive integer or null")
+        require_number("overlap", overlap, lambda v: 0 <= v < 1, "a fraction in [0, 1)")
+        require_number(
+            "min_valid_fraction", min_valid_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]"
+        )
+        require_bool("flip_augment", flip_augment)
+        # at least one validation line is drawn whatever the fraction; 0 would read as "none"
+        require_number("val_fraction", val_fraction, lambda v: 0 < v < 1, "a fraction in (0, 1)")
+        require_int("batch_size", batch_size)
+        require_int("num_workers", num_workers, minimum=0)
         self.data_dir = str(data_dir)
         self.window_pings, self.window_bins = window_pings, window_bins
         self.overlap, self.min_valid_fraction = overlap, min_valid_fraction

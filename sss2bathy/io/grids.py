@@ -39,9 +39,12 @@ from sss2bathy.survey import BathyGrid, SurveyFormatError
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "CRS_MISMATCH",
     "MESH_SUFFIXES",
     "RASTER_SUFFIXES",
+    "STATISTICS",
     "XYZ_SUFFIXES",
+    "Z_POSITIVE",
     "crs_equivalent",
     "grid_points",
     "read_bag",
@@ -59,6 +62,8 @@ XYZ_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
 BAG_NODATA = 1.0e6
 CRS_MISMATCH = ("reproject", "error")
+Z_POSITIVE = ("up", "down")  # heights (negative below the datum) or depths
+STATISTICS = ("mean", "median")  # height per cell of gridded points
 
 
 # ----------------------------------------------------------------------------- CRS helpers
@@ -351,7 +356,7 @@ def grid_points(
         raise ValueError(f"xyz: expected an (N, 3) array of points, found shape {xyz.shape}")
     if not (cell_size and cell_size > 0):
         raise ValueError(f"cell_size: expected a positive cell size (m), found {cell_size}")
-    if statistic not in ("mean", "median"):
+    if statistic not in STATISTICS:
         raise ValueError(f"statistic: expected 'mean' or 'median', found {statistic!r}")
     xyz = xyz[np.all(np.isfinite(xyz[:, :3]), axis=1)]
     if xyz.shape[0] == 0:
@@ -450,7 +455,7 @@ def read_xyz(
     path = Path(path)
     if cell_size is None:
         raise ValueError(f"cell_size: expected a cell size (m) to grid the points of {path}")
-    if z_positive not in ("up", "down"):
+    if z_positive not in Z_POSITIVE:
         raise ValueError(f"z_positive: expected 'up' or 'down', found {z_positive!r}")
     with open(path, errors="replace") as f:
         sample = "".join(f.readline() for _ in range(50))
@@ -487,7 +492,7 @@ def read_mesh(
     import trimesh
 
     path = Path(path)
-    if z_positive not in ("up", "down"):
+    if z_positive not in Z_POSITIVE:
         raise ValueError(f"z_positive: expected 'up' or 'down', found {z_positive!r}")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)

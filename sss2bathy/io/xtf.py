@@ -73,6 +73,7 @@ from sss2bathy.utils.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "MISSING_ATTITUDE",
     "NAV_UNITS_LATLON",
     "NAV_UNITS_METRES",
     "read_xtf",
@@ -89,6 +90,8 @@ SAMPLE_FORMAT_UINT16 = 3
 # Times written before this epoch (2000-01-01T00:00:00Z) are taken as relative to it.
 DEFAULT_EPOCH_S = 946684800.0
 SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
+# pings without attitude: refuse them, or take the heading from the track (pitch = roll = 0)
+MISSING_ATTITUDE = ("error", "track")
 
 
 # ----------------------------------------------------------------------------- projection
@@ -512,7 +515,7 @@ def read_xtf(
     path = Path(path)
     if n_bins is not None and (not isinstance(n_bins, (int, np.integer)) or n_bins < 2):
         raise ValueError(f"n_bins: expected None or an integer >= 2, found {n_bins!r}")
-    if missing_attitude not in ("error", "track"):
+    if missing_attitude not in MISSING_ATTITUDE:
         raise ValueError(
             f"missing_attitude: expected 'error' or 'track', found {missing_attitude!r}"
         )

@@ -25,8 +25,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sss2bathy.io.grids import footprint_coverage, read_grid, shift_grid
-from sss2bathy.io.xtf import SENSOR_KEYS, read_xtf
+from sss2bathy.io.grids import (
+    CRS_MISMATCH,
+    STATISTICS,
+    Z_POSITIVE,
+    footprint_coverage,
+    read_grid,
+    shift_grid,
+)
+from sss2bathy.io.xtf import MISSING_ATTITUDE, SENSOR_KEYS, read_xtf
 from sss2bathy.survey import BathyGrid, Survey, SurveyFormatError
 from sss2bathy.utils.atomic import (
     default_dir_mode,
@@ -35,11 +42,25 @@ from sss2bathy.utils.atomic import (
     stable_hash,
     write_folder_digest,
 )
+from sss2bathy.utils.checks import (
+    is_integer,
+    require_bool,
+    require_choice,
+    require_int,
+    require_number,
+)
 from sss2bathy.utils.config import plain_config
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULTS", "IMPORT_VERSION", "prepare_xtf_survey", "resolve_files", "resolve_splits"]
+__all__ = [
+    "DEFAULTS",
+    "IMPORT_VERSION",
+    "prepare_xtf_survey",
+    "resolve_files",
+    "resolve_splits",
+    "validate_xtf_config",
+]
 
 # Bump when the import changes what it writes, so cached folders are rebuilt.
 IMPORT_VERSION = 3
@@ -128,22 +149,66 @@ def _jsonable(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=default))
 
 
-def _validate(cfg: dict[str, Any]) -> None:
+def validate_xtf_config(cfg: Mapping[str, Any]) -> None:
+    """Check an ``xtf`` ``data.survey`` config (every key of :data:`DEFAULTS` present is
+    checked; start-up runs this before any file is read): ``ValueError`` naming the key
+    (``data.survey.<key>: expected ..., found ...``); unknown keys are warned about."""
     if cfg.get("kind") != "xtf":
         raise ValueError(f"data.survey.kind: expected 'xtf', found {cfg.get('kind')!r}")
     name = cfg.get("name")
     if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
         raise ValueError(f"data.survey.name: expected a folder name, found {name!r}")
     n_bins = cfg.get("n_bins")
-    if n_bins is not None and (not isinstance(n_bins, int) or n_bins < 2):
+    if n_bins is not None and (not is_integer(n_bins) or n_bins < 2):
         raise ValueError(f"data.survey.n_bins: expected null or an integer >= 2, found {n_bins!r}")
-    for key in SENSOR_KEYS:
-        v = cfg.get(key)
-        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
-            raise ValueError(f"data.survey.{key}: expected null or a number, found {v!r}")
+    for key, ok, expected in _NUMBERS:
+        if key in cfg:
+            optional = key in _NULLABLE
+            what = f"{expected} or null" if optional else expected
+            require_number(f"data.survey.{key}", cfg[key], ok, what, optional=optional)
+    for key, choices in _CHOICES:
+        if key in cfg:
+            require_choice(f"data.survey.{key}", cfg[key], choices)
+    for key in ("port_far_first", "auto_blanking"):
+        if key in cfg:
+            require_bool(f"data.survey.{key}", cfg[key])
+    if "channel_pair" in cfg:
+        require_int("data.survey.channel_pair", cfg["channel_pair"], minimum=0)
     unknown = sorted(set(cfg) - set(DEFAULTS))
     if unknown:
         log.warning("data.survey: ignoring keys unknown to the xtf source: %s", unknown)
+
+
+def _positive(v: float) -> bool:
+    return v > 0
+
+
+def _non_negative(v: float) -> bool:
+    return v >= 0
+
+
+#: ``(key, predicate, expectation)`` of the numeric keys; those of :data:`_NULLABLE` may be
+#: null (sensor values: from the files; cell size: the raster's; tolerance: no check)
+_NUMBERS: tuple[tuple[str, Any, str], ...] = (
+    ("tilt_deg", lambda v: -90 <= v <= 90, "a value in [-90, 90] degrees"),
+    ("beam_width_deg", lambda v: 0 < v < 180, "a value in (0, 180) degrees"),
+    ("frequency_hz", _positive, "a positive frequency (Hz)"),
+    ("sound_speed_mps", _positive, "a positive speed (m/s)"),
+    ("mbes_cell_size", _positive, "a positive number (m)"),
+    ("max_jump_m", _positive, "a positive distance (m)"),
+    ("max_speed_mps", _positive, "a positive speed (m/s)"),
+    ("max_nav_gap_s", _positive, "a positive duration (s)"),
+    ("min_first_return_m", _non_negative, "a distance >= 0 (m)"),
+    ("blanking_m", _non_negative, "a distance >= 0 (m)"),
+    ("altitude_tolerance_m", _positive, "a positive distance (m)"),
+)
+_NULLABLE = (*SENSOR_KEYS, "mbes_cell_size", "altitude_tolerance_m")
+_CHOICES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("mbes_z_positive", Z_POSITIVE),
+    ("mbes_statistic", STATISTICS),
+    ("mbes_crs_mismatch", CRS_MISMATCH),
+    ("missing_attitude", MISSING_ATTITUDE),
+)
 
 
 def _cached_hash(folder: Path) -> str | None:
@@ -198,7 +263,7 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
     """
     user = plain_config(cfg)
     merged = {**DEFAULTS, **user}
-    _validate(merged)
+    validate_xtf_config(merged)
     files = resolve_files(merged["files"])
     names = [f.stem for f in files]
     if len(set(names)) != len(names):

@@ -16,6 +16,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from sss2bathy.utils.checks import require_choice, require_number
+
 BASES = ("l1", "l2", "smooth_l1")
 KINDS = ("normal_aware", *BASES)
 # short names of the data term, used as logging keys (``loss_na`` etc.)
@@ -208,18 +210,14 @@ class NormalLoss(nn.Module):
         tv_along_track: float = 0.0,
     ) -> None:
         super().__init__()
-        if kind not in KINDS:
-            raise ValueError(f"loss kind: expected one of {KINDS}, found {kind!r}")
-        if base not in BASES:
-            raise ValueError(f"loss base: expected one of {BASES}, found {base!r}")
-        if not isinstance(beta, int | float) or isinstance(beta, bool) or not beta > 0:
-            raise ValueError(f"loss beta: expected a positive number, found {beta!r}")
+        require_choice("kind", kind, KINDS)
+        require_choice("base", base, BASES)
+        require_number("beta", beta, lambda v: v > 0, "a positive number")
         for name, value in (
             ("tv_across_track", tv_across_track),
             ("tv_along_track", tv_along_track),
         ):
-            if not isinstance(value, int | float) or isinstance(value, bool) or not value >= 0:
-                raise ValueError(f"loss {name}: expected a number >= 0, found {value!r}")
+            require_number(name, value, lambda v: v >= 0, "a weight >= 0")
         self.kind = kind
         self.base = base
         self.beta = float(beta)

@@ -49,6 +49,7 @@ from torch import nn
 
 from sss2bathy.geometry import incidence_cosine, world_normal
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
+from sss2bathy.utils.checks import require_number
 
 if TYPE_CHECKING:
     from sss2bathy.survey import SensorParams
@@ -273,6 +274,14 @@ class LambertianSensorModel(SensorModel):
             )
         if not field_weight >= 0.0:
             raise ValueError(f"field_weight: expected a weight >= 0, found {field_weight}")
+        require_number("shadow_threshold", shadow_threshold, lambda v: v >= 0, "a number >= 0")
+        # each range first, so a bad value is named even when its partner is null
+        tilt_ok = lambda v: -90 <= v <= 90  # noqa: E731
+        require_number("tilt_deg", tilt_deg, tilt_ok, "a value in [-90, 90] degrees or null", True)
+        width_ok = lambda v: 0 < v < 180  # noqa: E731
+        require_number(
+            "beam_width_deg", beam_width_deg, width_ok, "a value in (0, 180) degrees or null", True
+        )
         if not near_range_cut_m >= 0.0:
             raise ValueError(f"near_range_cut_m: expected >= 0 m, found {near_range_cut_m}")
         if not init_scale > 0.0:
@@ -307,10 +316,6 @@ class LambertianSensorModel(SensorModel):
             if (args[0] is None) != (args[1] is None):
                 raise ValueError(f"{names}: expected both given or both null, found {args}")
         if tilt_deg is not None:
-            if not 0.0 < beam_width_deg < 180.0:
-                raise ValueError(
-                    f"beam_width_deg: expected a value in (0, 180), found {beam_width_deg}"
-                )
             tilt, half = math.radians(tilt_deg), math.radians(beam_width_deg) / 2
             self.set_domain(theta_limits_rad=(tilt - half, tilt + half))
         if range_min_m is not None:

@@ -171,6 +171,28 @@ def test_steps_per_epoch_and_validation(tiny_survey):
     assert len(list(dm.val_dataloader())) == 1
 
 
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        ({"batch_pings": 0}, "batch_pings: expected a positive integer, found 0"),
+        ({"altimeter_points": 2.5}, "altimeter_points: expected a positive integer, found 2.5"),
+        ({"need_intensity": 3}, "need_intensity: expected true or false, found 3"),
+        ({"z_margin": -0.5}, "z_margin: expected a fraction >= 0, found -0.5"),
+        ({"z_margin_m": "x"}, "z_margin_m: expected a number >= 0 (m), found 'x'"),
+        ({"window": {"window_pings": 0}}, "window.window_pings: expected a positive integer"),
+        ({"window": {"window_bins": -8}}, "window.window_bins: expected a positive integer"),
+        ({"window": {"overlap": 1.0}}, "window.overlap: expected a fraction in [0, 1), found 1.0"),
+    ],
+)
+def test_constructor_names_the_bad_argument(tiny_survey, kw, message):
+    # "<argument>: expected ..., found ...": start-up turns it into the key data.<argument>
+    with pytest.raises(ValueError) as err:
+        _dm(tiny_survey, **kw)
+    assert str(err.value).startswith(message)
+    dm = _dm(tiny_survey, window={"window_pings": 8, "window_bins": None, "overlap": 0.5})
+    assert dm.window == {"window_pings": 8, "window_bins": None, "overlap": 0.5}
+
+
 def test_build_ping_table_rejects_mixed_ranges(tiny_survey):
     survey = Survey.load(tiny_survey)
     survey.lines[1].range_m = survey.lines[1].range_m * 1.1

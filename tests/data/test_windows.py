@@ -288,6 +288,18 @@ def test_datamodule_errors(survey_dir, tmp_path):
         SidescanWindowDataModule(survey={"path": "x"}, data_dir=str(tmp_path))
     with pytest.raises(ValueError, match="val_fraction"):
         SidescanWindowDataModule(**kw, val_fraction=0.0)
+    # "<argument>: expected ..., found ...", the argument named (start-up: data.<argument>)
+    for bad, message in [
+        ({"val_fraction": "0.1x"}, "val_fraction: expected a fraction in (0, 1), found '0.1x'"),
+        ({"min_valid_fraction": 1.5}, "min_valid_fraction: expected a fraction in [0, 1], found"),
+        ({"flip_augment": 1}, "flip_augment: expected true or false, found 1"),
+        ({"window_pings": 0}, "window_pings: expected a positive integer, found 0"),
+        ({"window_bins": 2.0}, "window_bins: expected a positive integer or null, found 2.0"),
+        ({"overlap": 1.0}, "overlap: expected a fraction in [0, 1), found 1.0"),
+    ]:
+        with pytest.raises(ValueError) as err:
+            SidescanWindowDataModule(**kw, **bad)
+        assert str(err.value).startswith(message)
     with pytest.raises(RuntimeError, match="setup"):
         SidescanWindowDataModule(**kw).train_dataloader()
 

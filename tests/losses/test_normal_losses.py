@@ -120,10 +120,17 @@ def test_normal_loss_terms_by_kind():
 
 
 def test_normal_loss_rejects_unknown_kind_and_bad_values_naming_them():
-    with pytest.raises(ValueError, match="'l3'"):
+    # "<argument>: expected ..., found ...": start-up names the key (model.loss.<argument>)
+    with pytest.raises(ValueError, match=r"^kind: expected one of \[.*'l3'$"):
         NormalLoss(kind="l3")
-    with pytest.raises(ValueError, match="tv_along_track"):
+    with pytest.raises(ValueError, match=r"^base: expected one of \[.*'huber'$"):
+        NormalLoss(base="huber")
+    with pytest.raises(ValueError, match=r"^beta: expected a positive number, found 0$"):
+        NormalLoss(beta=0)
+    with pytest.raises(ValueError, match=r"^tv_along_track: expected a weight >= 0, found -1.0$"):
         NormalLoss(tv_along_track=-1.0)
+    with pytest.raises(ValueError, match=r"^tv_across_track: expected .* found 'x'$"):
+        NormalLoss(tv_across_track="x")
     with pytest.raises(ValueError, match="unknown option.*'tv_weight'"):
         NormalLoss.from_config({"kind": "l1", "tv_weight": 1.0})
     with pytest.raises(ValueError, match="mask"):
