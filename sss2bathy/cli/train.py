@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,6 +138,15 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
     return Run(datamodule, model, callbacks, loggers, trainer)
 
 
+def _fresh_tensorboard_dirs(loggers: list) -> list[Path]:
+    """The ``log_dir`` of each TensorBoard logger that does not exist yet: this run's own,
+    safe to remove (a resumed run's earlier event files are not)."""
+    from pytorch_lightning.loggers import TensorBoardLogger
+
+    dirs = [Path(lg.log_dir) for lg in loggers if isinstance(lg, TensorBoardLogger)]
+    return [d for d in dirs if not d.exists()]
+
+
 def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
     """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
     modules without that attribute, the CNN's, always train on MBES)."""
@@ -159,15 +169,24 @@ def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
     datamodule, model, trainer = run.datamodule, run.model, run.trainer
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
     metrics: dict[str, Any] = {}
-    if cfg.get("train", True):
-        # checkpoints hold tensors and plain values only: no pickled code runs on resume
-        trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
-        metrics.update(trainer.callback_metrics)
-    if cfg.get("test", True) and is_overridden("test_step", model):
-        # after a fit: the weights it ended with; without one (train=false): the checkpoint's
-        test_ckpt = None if cfg.get("train", True) else ckpt_path
-        trainer.test(model=model, datamodule=datamodule, ckpt_path=test_ckpt, weights_only=True)
-        metrics.update(trainer.callback_metrics)
+    fresh_dirs = _fresh_tensorboard_dirs(run.loggers)
+    try:
+        if cfg.get("train", True):
+            # checkpoints hold tensors and plain values only: no pickled code runs on resume
+            trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+            metrics.update(trainer.callback_metrics)
+        if cfg.get("test", True) and is_overridden("test_step", model):
+            # after a fit: the weights it ended with; without one (train=false): the checkpoint's
+            test_ckpt = None if cfg.get("train", True) else ckpt_path
+            trainer.test(model=model, datamodule=datamodule, ckpt_path=test_ckpt, weights_only=True)
+            metrics.update(trainer.callback_metrics)
+    except BaseException:
+        if trainer.global_step == 0:
+            # failed before its first step (e.g. in the data module's setup): TensorBoard
+            # would list an empty run; the run folder keeps its log
+            for folder in fresh_dirs:
+                shutil.rmtree(folder, ignore_errors=True)
+        raise
     final = getattr(model, "final_metrics", None)
     if isinstance(final, dict):
         metrics.update(final)

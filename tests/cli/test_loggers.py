@@ -184,12 +184,6 @@ def test_a_run_with_many_loggers_writes_each_and_keeps_the_map_in_its_folder(tin
     assert (tiny_root / "outputs" / "mlflow.db").is_file()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs sss2bathy/cli/train.py fit() to drop the TensorBoard folder of a run that "
-    "failed before its first step (Lightning creates the event file before the data "
-    "module's setup)",
-)
 def test_a_run_that_fails_in_setup_leaves_no_empty_tensorboard_run(tiny_root, tiny_data):
     proc = _train(
         tiny_root,
