@@ -189,8 +189,12 @@ def hydra_entry(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Cal
     return decorate
 
 
-def apply_extras(cfg: DictConfig) -> None:
-    """Validate the composed config (before any dump), then apply ``extras``."""
+def apply_extras(cfg: DictConfig, print_config: bool = True) -> None:
+    """Validate the composed config (before any dump), then apply ``extras``.
+
+    ``print_config=False`` leaves the dump (``extras.print_config``) to the caller's
+    :func:`log_config`, for an entry point whose constructors check more before it
+    (``sss2bathy-train`` instantiates its run first)."""
     from sss2bathy.config_validation import validate_config
 
     validate_config(cfg)
@@ -198,7 +202,13 @@ def apply_extras(cfg: DictConfig) -> None:
     if extras.get("ignore_warnings"):
         warnings.filterwarnings("ignore", category=UserWarning)
         warnings.filterwarnings("ignore", category=FutureWarning)
-    if extras.get("print_config"):
+    if print_config:
+        log_config(cfg)
+
+
+def log_config(cfg: DictConfig) -> None:
+    """Log the composed config when ``extras.print_config`` asks for it."""
+    if (cfg.get("extras") or {}).get("print_config"):
         log.info("composed config:\n%s", OmegaConf.to_yaml(cfg, resolve=False))
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,7 +17,13 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment, write_run_record
+from sss2bathy.cli._common import (
+    apply_extras,
+    hydra_entry,
+    log_config,
+    setup_environment,
+    write_run_record,
+)
 
 log = logging.getLogger("sss2bathy.train")
 
@@ -147,9 +153,12 @@ def _fresh_tensorboard_dirs(loggers: list) -> list[Path]:
     return [d for d in dirs if not d.exists()]
 
 
-def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
+def fit(
+    cfg: DictConfig, run_dir: Path | None = None, on_checked: Callable[[], None] | None = None
+) -> FitResult:
     """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
-    modules without that attribute, the CNN's, always train on MBES)."""
+    modules without that attribute, the CNN's, always train on MBES). ``on_checked`` runs
+    once every start-up check passed (the run instantiated), before any data is made."""
     import pytorch_lightning as pl
     from pytorch_lightning.utilities.model_helpers import is_overridden
 
@@ -166,6 +175,8 @@ def fit(cfg: DictConfig, run_dir: Path | None = None) -> FitResult:
     # modules draw batches from their own generators seeded by data.seed (= seed)
     pl.seed_everything(cfg.seed, workers=True)
     run = instantiate_run(cfg, run_dir)
+    if on_checked is not None:
+        on_checked()
     datamodule, model, trainer = run.datamodule, run.model, run.trainer
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
     metrics: dict[str, Any] = {}
@@ -203,9 +214,10 @@ setup_environment()
 def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
-    apply_extras(cfg)
+    # the config dump waits for the constructors' checks: a bad value is one line before it
+    apply_extras(cfg, print_config=False)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    result = fit(cfg, run_dir)
+    result = fit(cfg, run_dir, on_checked=lambda: log_config(cfg))
     # evaluation-only runs (train=false) have no optimised metric to return
     if not cfg.get("train", True):
         return None

@@ -17,11 +17,11 @@ from sss2bathy.io.xtf import write_xtf
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def run(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+def run(args: list[str], tmp_path: Path, entry: str = "prepare") -> subprocess.CompletedProcess:
     env = {**os.environ, "SSS2BATHY_ROOT": str(ROOT), "OMP_NUM_THREADS": "1"}
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
-        [sys.executable, "-m", "sss2bathy.cli.prepare", *args, f"hydra.run.dir={tmp_path / 'o'}"],
+        [sys.executable, "-m", f"sss2bathy.cli.{entry}", *args, f"hydra.run.dir={tmp_path / 'o'}"],
         cwd=tmp_path,
         env=env,
         capture_output=True,
@@ -85,6 +85,27 @@ def test_bad_file_and_bad_value_are_one_line_before_any_config_dump(tmp_path, co
     assert line.startswith("error: ") and "L0.xtf" in line and "ping 4" in line and "magic" in line
     assert "Traceback" not in proc.stdout + proc.stderr
     assert tree(data) == before
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        # checked by the data module's constructor (no table rule): still before the dump
+        ("data.batch_pings=0", "config key 'data.batch_pings': expected a positive integer"),
+        ("model.sensor.shadow_threshold=-0.1", "config key 'model.sensor.shadow_threshold'"),
+    ],
+)
+def test_train_reports_a_constructor_error_in_one_line_before_the_config_dump(
+    tmp_path, override, message
+):
+    data = tmp_path / "data"
+    args = ["experiment=siren_lambert", "scale=tiny", f"paths.data_dir={data}", override]
+    proc = run(args, tmp_path, entry="train")
+    assert proc.returncode == USER_ERROR_EXIT, proc.stderr[-3000:]
+    (line,) = stderr_lines(proc)
+    assert line.startswith(f"error: {message}") and line.endswith(override.split("=")[1])
+    assert "composed config" not in proc.stdout + proc.stderr
+    assert not data.exists()  # no survey was made
 
 
 def test_trace_flag_is_taken_off_the_command_line(monkeypatch):
