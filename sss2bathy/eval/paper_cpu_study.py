@@ -83,9 +83,12 @@ def mae_at(curve: Mapping[str, np.ndarray], t_s: float, budget_s: float) -> floa
     """MAE of the map the fit holds at ``t_s`` seconds: its latest evaluation at or before
     ``t_s``; NaN before the first evaluation or beyond the fit's ``budget_s`` (the fit was
     stopped: what it would hold then is unknown). A fit that finished its schedule earlier
-    holds its last map until the budget."""
+    holds its last map until the budget; at the budget itself, the fit's final evaluation
+    (made just after the time limit stopped it)."""
     if t_s > budget_s * (1 + 1e-6):
         return math.nan
+    if t_s >= budget_s * (1 - 1e-6):  # the end of the budget: the map the fit ended with
+        return float(np.asarray(curve[KEY])[-1])
     hit = np.nonzero(np.asarray(curve[CLOCK]) <= t_s)[0]
     return float(np.asarray(curve[KEY])[hit[-1]]) if hit.size else math.nan
 

@@ -36,6 +36,8 @@ def test_mae_at_is_the_latest_evaluation_and_nan_beyond_the_budget():
     assert mae_at(c, 299, budget_s=600) == 0.5
     assert mae_at(c, 600, budget_s=600) == 0.2  # finished early: holds its last map
     assert math.isnan(mae_at(c, 601, budget_s=600))
+    late = _curve([60, 302], [1.0, 0.4])  # the final evaluation lands after the time limit
+    assert mae_at(late, 300, budget_s=300) == 0.4 and mae_at(late, 299, budget_s=300) == 1.0
 
 
 def test_time_to_quality_uses_the_methods_best_over_its_runs():
