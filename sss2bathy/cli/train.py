@@ -189,7 +189,13 @@ def fit(
         if cfg.get("test", True) and is_overridden("test_step", model):
             # after a fit: the weights it ended with; without one (train=false): the checkpoint's
             test_ckpt = None if cfg.get("train", True) else ckpt_path
-            trainer.test(model=model, datamodule=datamodule, ckpt_path=test_ckpt, weights_only=True)
+            trainer.test(
+                model=model,
+                datamodule=datamodule,
+                ckpt_path=test_ckpt,
+                weights_only=True,
+                verbose=False,  # callbacks.writers.MetricsTableLogger prints full names
+            )
             metrics.update(trainer.callback_metrics)
     except BaseException:
         if trainer.global_step == 0:

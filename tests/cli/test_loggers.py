@@ -168,11 +168,6 @@ def test_a_run_without_logger_writes_into_its_own_run_folder(tiny_root, tiny_dat
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs the modules to log hparams+metrics in a way CSVLogger/MLFlowLogger accept "
-    "(log_hyperparams(params, metrics=...) is TensorBoard's only)",
-)
 def test_a_run_with_many_loggers_writes_each_and_keeps_the_map_in_its_folder(tiny_root, tiny_data):
     pytest.importorskip("mlflow", reason="logger=many includes mlflow")
     proc = _train(tiny_root, tiny_data, ["logger=many"])
