@@ -19,7 +19,7 @@ import pytorch_lightning as pl
 import torch
 from pytorch_lightning.loggers import TensorBoardLogger
 
-from sss2bathy.eval.maps import colorize, error_map, gradient_hsv
+from sss2bathy.eval.maps import ERROR_LABEL, error_map, gradient_hsv, map_figure
 from sss2bathy.metrics.bathy import map_gradient
 
 
@@ -157,20 +157,48 @@ class SirenMapImages(pl.Callback):
             return
         self._logged = ev
         pred, region = ev.pred, ev.region
+        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        if not loggers:
+            return
         shown = np.where(region, pred.heights, np.nan) if region is not None else pred.heights
-        images = {
-            "map/bathymetry": colorize(shown),
-            "map/gradient_hsv": gradient_hsv(*map_gradient(shown, pred.cell_size)),
+        title = pl_module.map_title() if hasattr(pl_module, "map_title") else "SIREN"
+        inputs = getattr(pl_module, "inputs", None)
+        origin = getattr(inputs, "origin", None)
+        extent = (
+            float(pred.x[0] - pred.cell_size / 2),
+            float(pred.x[-1] + pred.cell_size / 2),
+            float(pred.y[0] - pred.cell_size / 2),
+            float(pred.y[-1] + pred.cell_size / 2),
+        )
+        dzdx, dzdy = map_gradient(shown, pred.cell_size)
+        norm = np.hypot(dzdx, dzdy)
+        vmax = float(np.nanpercentile(norm, 99)) if np.isfinite(norm).any() else None
+        figures = {
+            "map/bathymetry": lambda: map_figure(
+                shown, f"{title}: bathymetry", extent=extent, origin=origin
+            ),
+            "map/gradient_hsv": lambda: map_figure(
+                gradient_hsv(dzdx, dzdy, vmax),
+                f"{title}: gradient (hue: upslope direction)",
+                extent=extent,
+                origin=origin,
+                vmax=vmax,
+            ),
         }
         if ev.truth is not None:
             err = error_map(pred, ev.truth, region)
-            images["map/signed_error"] = colorize(err, "RdBu_r", symmetric=True)
-        for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):
-                for tag, rgb in images.items():
-                    logger.experiment.add_image(
-                        tag, np.ascontiguousarray(rgb[::-1]), trainer.global_step, dataformats="HWC"
-                    )
+            figures["map/signed_error"] = lambda: map_figure(
+                err,
+                f"{title}: map - MBES",
+                cmap="RdBu_r",
+                symmetric=True,
+                label=ERROR_LABEL,
+                extent=extent,
+                origin=origin,
+            )
+        for tag, make in figures.items():
+            for logger in loggers:  # a labelled figure (colour bar, axes, north), not raw pixels
+                logger.experiment.add_figure(tag, make(), trainer.global_step, close=True)
 
 
 __all__ = ["NormalImageLogger", "SirenMapImages", "render_window_panel", "tensorboard_logger"]

@@ -94,6 +94,8 @@ class SirenModule(pl.LightningModule):
             encoding's parameters; ``None`` = the optimizer's.
         select_best: the final map is the SIREN of the evaluation with the lowest such
             metric (:data:`~sss2bathy.modules.siren_parts.SELECT_BEST`), or the last (None).
+        title: names the run in its map figures (e.g. ``"siren_gt_n2d on synthetic_d1_demo"``);
+            None = the sensor model's title.
     """
 
     def __init__(
@@ -112,6 +114,7 @@ class SirenModule(pl.LightningModule):
         sensor_lr: float | None = None,
         encoding_lr: float | None = None,
         select_best: str | None = None,
+        title: str | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -142,6 +145,7 @@ class SirenModule(pl.LightningModule):
         self.sensor_lr = _positive_or_none("sensor_lr", sensor_lr)
         self.encoding_lr = _positive_or_none("encoding_lr", encoding_lr)
         self.best = BestSnapshot(select_best)
+        self.title = None if title is None else str(title)
         self.register_buffer("framed", torch.tensor(False))
         self.register_buffer("theta_cache", torch.zeros(0, 2, 0), persistent=False)
         self.final_metrics: dict[str, float] = {}
@@ -283,6 +287,8 @@ class SirenModule(pl.LightningModule):
         return self.latest_evaluation
 
     def map_title(self) -> str:
+        if self.title:
+            return self.title
         if self.sensor is None:
             return "heights only"
         return getattr(self.sensor, "title", type(self.sensor).__name__)
