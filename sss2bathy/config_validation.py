@@ -101,14 +101,6 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
     ("model.optimizer.lr", positive, "a positive learning rate"),
     ("model.scheduler.gamma", _gamma, "a decay factor in (0, 1]"),
-    # the LightningModules' own keys (sss2bathy.modules), until their constructors check them
-    ("model.compile", boolean, "true or false"),
-    ("model.eval_cell_m", positive, "a positive number (m)"),
-    ("model.region_radius_m", positive, "a positive number (m) or null"),
-    ("model.encoding_lr", positive, "a positive learning rate or null"),
-    # the SIREN a module builds from its model.siren factory, until Siren checks them
-    ("model.siren.precision", *_choices("sss2bathy.models.siren", "PRECISIONS")),
-    ("model.siren.chunk", positive_int, "a positive number of points or null"),
 ]
 
 

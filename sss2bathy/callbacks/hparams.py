@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pytorch_lightning as pl
+from hydra.core.hydra_config import HydraConfig
 from pytorch_lightning.loggers import TensorBoardLogger
 
 
@@ -69,7 +70,8 @@ class RunHparams(pl.Callback):
     Args:
         run: the run's identity, e.g. ``{experiment: ${task_name}, seed: ${seed}, ...}``
             (``None`` values are logged as ``"none"``).
-        overrides: the command line's overrides (``${hydra:overrides.task}``).
+        overrides: the command line's overrides; ``None`` = those of the running Hydra job
+            (``hydra.overrides.task``), none outside Hydra (a config composed in code).
     """
 
     def __init__(
@@ -80,6 +82,8 @@ class RunHparams(pl.Callback):
         if isinstance(overrides, str):
             raise ValueError(f"overrides: expected a list of overrides, found {overrides!r}")
         self.run = dict(run or {})
+        if overrides is None:
+            overrides = _hydra_task_overrides()
         self.overrides = [str(o) for o in overrides or []]
         self._sessions: set[int] = set()
 
@@ -120,6 +124,13 @@ class RunHparams(pl.Callback):
         writer = logger.experiment._get_file_writer()
         writer.add_summary(start)
         writer.add_summary(end)
+
+
+def _hydra_task_overrides() -> list[str]:
+    """The running Hydra job's command-line overrides, or none outside a Hydra job."""
+    if not HydraConfig.initialized():
+        return []
+    return list(HydraConfig.get().overrides.task)
 
 
 __all__ = ["RunHparams", "final_scalars", "flatten", "plain"]

@@ -35,6 +35,7 @@ from sss2bathy.modules.cnn_parts import (
     input_channel_names,
     net_config,
 )
+from sss2bathy.utils.checks import require_bool
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +103,7 @@ class NormalCNNModule(pl.LightningModule):
                 "scheduler": describe_factory(scheduler),
                 "image_every_n_epochs": image_every_n_epochs,
                 "n_images": n_images,
-                "compile": bool(compile),
+                "compile": require_bool("compile", compile),
                 "input_channels": list(channels),
                 "channels_last": bool(channels_last),
             },

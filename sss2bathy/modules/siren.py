@@ -55,6 +55,7 @@ from sss2bathy.modules.siren_parts import (
     finite_metrics,
     param_groups,
 )
+from sss2bathy.utils.checks import require_number
 
 log = logging.getLogger(__name__)
 
@@ -138,8 +139,16 @@ class SirenModule(pl.LightningModule):
         self.scheduler_factory = scheduler
         self.finder = FinderSettings.from_mapping(finder)
         self.eval_every_n_epochs = int(eval_every_n_epochs)
-        self.eval_cell_m = float(eval_cell_m)
-        self.region_radius_m = region_radius_m
+        self.eval_cell_m = float(
+            require_number("eval_cell_m", eval_cell_m, lambda v: v > 0, "a positive number (m)")
+        )
+        self.region_radius_m = require_number(
+            "region_radius_m",
+            region_radius_m,
+            lambda v: v > 0,
+            "a positive number (m) or null",
+            optional=True,
+        )
         self.output_dir = output_dir
         self.log_images = bool(log_images)
         self.sensor_lr = _positive_or_none("sensor_lr", sensor_lr)
