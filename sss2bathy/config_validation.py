@@ -241,7 +241,8 @@ def constructor_error(node: str, err: BaseException, cfg: DictConfig | None = No
     ``data`` node becomes ``data.drape.rays_per_bin``. With the composed ``cfg``: an
     argument the node lacks but exactly one of its sub-nodes holds was raised by that
     sub-node's object, built by the node's own constructor from a ``_partial_`` factory
-    (``hidden`` raised for ``model`` is ``model.siren.hidden``)."""
+    (``hidden`` raised for ``model`` is ``model.siren.hidden``); several such sub-nodes are
+    all named."""
     message = str(err)
     match = _ARGUMENT.match(message)
     if match is None:
@@ -260,6 +261,9 @@ def constructor_error(node: str, err: BaseException, cfg: DictConfig | None = No
         ]
         if len(holders) == 1:
             key = f"{node}.{holders[0]}.{argument}"
+        elif holders:  # several sub-nodes hold the argument: name each, never a wrong one
+            keys = " or ".join(f"'{node}.{h}.{argument}'" for h in holders)
+            return ConfigError(f"config key {keys}: {rest}")
     return ConfigError(f"config key '{key}': {rest}")
 
 

@@ -131,7 +131,7 @@ def test_hydra_config_selects_the_precision(precision):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from sss2bathy.config_validation import ConfigError, validate_config
+    from sss2bathy.config_validation import ConfigError, instantiate_group, validate_config
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
@@ -143,5 +143,8 @@ def test_hydra_config_selects_the_precision(precision):
     validate_config(cfg)
     model = instantiate(cfg.model)
     assert model.siren.precision == precision and model.siren.chunk is None
+    validate_config(bad)  # no table rule: the Siren constructor checks chunk at start-up
     with pytest.raises(ConfigError, match="model.siren.chunk"):
-        validate_config(bad)
+        instantiate_group(
+            "model", lambda: instantiate(bad.model, _recursive_=True, _convert_="partial"), bad
+        )
