@@ -34,16 +34,14 @@ import math
 import os
 import subprocess
 import sys
-import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from sss2bathy.eval.schedule_study import load_run_curve
+from sss2bathy.eval.xtf_study import run_logged, survey_config
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.prepare import cache_problem
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
@@ -257,20 +255,13 @@ def curve_figure(
 # ---------------------------------------------------------------- commands
 
 
-def survey_config(scale: str, preset: str = PRESET) -> dict[str, Any]:
-    """The ``data/survey=<preset>`` config at ``scale`` as ``sss2bathy-prepare`` composes it."""
-    with initialize_config_dir(config_dir=str(CONF), version_base=None):
-        cfg = compose("prepare", overrides=[f"data/survey={preset}", f"scale={scale}"])
-    return OmegaConf.to_container(cfg.data.survey, resolve=True)  # type: ignore[return-value]
-
-
 def survey_status(scale: str, data_dir: str | Path, preset: str = PRESET) -> dict[str, Any]:
     """Whether ``data_dir`` already holds the survey (a dry compose: nothing is made).
 
     Returns ``{"name", "config_hash", "folder", "problem"}``; ``problem`` is ``None`` when
     the cached folder serves, else why not (missing, incomplete, stale hash, ...).
     """
-    config = SyntheticSurveyConfig.from_mapping(survey_config(scale, preset))
+    config = SyntheticSurveyConfig.from_mapping(survey_config(preset, scale))
     folder = Path(data_dir) / config.name
     key = config.hash()
     return {
@@ -376,26 +367,6 @@ def fit_command(
     if threads is not None:
         cmd.append(f"torch_threads={int(threads)}")
     return cmd + list(extra)
-
-
-def run_logged(cmd: Sequence[str], log_path: Path, threads: int | None) -> float:
-    """Run ``cmd`` (output to ``log_path``); its wall seconds.
-
-    Raises:
-        RuntimeError: the command failed (its last log line quoted).
-    """
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ)
-    if threads is not None:
-        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
-    t0 = time.monotonic()
-    with open(log_path, "w") as f:
-        rc = subprocess.run(list(cmd), stdout=f, stderr=subprocess.STDOUT, env=env).returncode
-    wall = time.monotonic() - t0
-    if rc != 0:
-        tail = log_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
-        raise RuntimeError(f"{log_path}: {cmd[2]} exited {rc}: {tail[0]}")
-    return wall
 
 
 def _generation_seconds(folder: Path) -> float:

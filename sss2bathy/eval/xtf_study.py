@@ -458,22 +458,33 @@ def map_command(
     return cmd
 
 
-def run_map(cmd: Sequence[str], run_dir: Path) -> float:
-    """Run one ``sss2bathy-map`` command (log in ``run_dir.log``); its wall seconds.
+def run_logged(cmd: Sequence[str], log_path: Path, threads: int | None) -> float:
+    """Run ``cmd`` (output to ``log_path``); its wall seconds.
 
     Raises:
         RuntimeError: the command failed (its last log line quoted).
     """
-    run_dir.parent.mkdir(parents=True, exist_ok=True)
-    log_path = run_dir.with_suffix(".log")
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if threads is not None:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     t0 = time.monotonic()
     with open(log_path, "w") as f:
         rc = subprocess.run(list(cmd), stdout=f, stderr=subprocess.STDOUT, env=env).returncode
     wall = time.monotonic() - t0
     if rc != 0:
         tail = log_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
-        raise RuntimeError(f"{log_path}: sss2bathy-map exited {rc}: {tail[0]}")
+        raise RuntimeError(f"{log_path}: {cmd[2]} exited {rc}: {tail[0]}")
+    return wall
+
+
+def run_map(cmd: Sequence[str], run_dir: Path) -> float:
+    """Run one ``sss2bathy-map`` command (log in ``run_dir.log``); its wall seconds.
+
+    Raises:
+        RuntimeError: the command failed (its last log line quoted).
+    """
+    wall = run_logged(cmd, run_dir.with_suffix(".log"), threads=1)
     atomic_write_text(run_dir / "study_wall_s.txt", f"{wall:.1f}\n")
     return wall
 
