@@ -1,10 +1,18 @@
 """CNN inference at a scale's size (issue 20, Build 4): windows/s of the normal network's
 forward pass in each variant, interleaved in one run (medians), and the projected time
-for a survey's lines.
+for a survey's lines at each inference overlap.
 
 Variants: ``fp32`` (``torch.no_grad``, contiguous), ``fp32_cl`` (``channels_last``),
 ``bf16`` (CPU autocast to bfloat16), ``bf16_cl``; each under ``torch.inference_mode``.
 Random weights: the cost of a forward pass does not depend on them.
+
+The projection (``projected_min_12_lines``) is windows / windows-per-second for the paper's
+12 test lines (2000 pings, 512 bins per side, both heads) at each ``--overlaps`` value
+(``data.cnn_overlap``: the training 0.75, or 0.5 = half the windows). ``--e2e-pings N``
+also runs the whole pipeline (:func:`sss2bathy.data.cnn_normals.predict_waterfall`:
+gathering the windows, batches of ``--e2e-batch``, stitching) over an ``N``-ping line and
+reports its windows/s as a ratio to the bare forward pass of the same variant (the
+pipeline's overhead) and the time of one paper line's stitching.
 
     python -m benchmarks.cnn_inference --base-width 64 --n-blocks 7 --batch 8 --repeats 3
 """
@@ -20,6 +28,9 @@ from collections.abc import Sequence
 import torch
 
 VARIANTS = ("fp32", "fp32_cl", "bf16", "bf16_cl")
+
+
+OVERLAPS = (0.75, 0.5)
 
 
 def survey_windows(
@@ -39,8 +50,13 @@ def bench(
     repeats: int = 3,
     variants: Sequence[str] = VARIANTS,
     seed: int = 0,
+    overlaps: Sequence[float] = OVERLAPS,
+    e2e_pings: int = 0,
+    e2e_batch: int = 64,
 ) -> dict:
-    """``{variant: windows/s (median)}`` plus the per-repeat times, interleaved A, B, ..."""
+    """``{variant: windows/s (median)}`` plus the per-repeat times, interleaved A, B, ...,
+    the projection per variant and overlap, and (``e2e_pings > 0``) the pipeline's rate."""
+    from sss2bathy.data.cnn_normals import cpu_has_native_bf16
     from sss2bathy.models.normal_cnn import NormalResNet
 
     bad = [v for v in variants if v not in VARIANTS]
@@ -78,14 +94,21 @@ def bench(
     med = {v: batch / statistics.median(t) for v, t in times.items()}
     cpu_rate = {v: batch / statistics.median(t) for v, t in cpu.items()}
     n = survey_windows(window=window)
+    n_at = {f"overlap_{o:g}": survey_windows(window=window, overlap=o) for o in overlaps}
     threads = torch.get_num_threads()
-    return {
+    out = {
         "config": {"base_width": base_width, "n_blocks": n_blocks, "batch": batch,
-                   "window": list(window), "threads": torch.get_num_threads()},
+                   "window": list(window), "threads": torch.get_num_threads(),
+                   "overlaps": list(overlaps),
+                   "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+                   "native_bf16": cpu_has_native_bf16()},
         "windows_per_s": med,
         "ratio_to_fp32": {v: med[v] / med["fp32"] for v in variants} if "fp32" in med else {},
         "survey_windows_12_lines": n,
-        "projected_min_12_lines": {v: n / r / 60 for v, r in med.items()},
+        "survey_windows_12_lines_by_overlap": n_at,
+        "projected_min_12_lines": {
+            f"{v}_{o}": k / r / 60 for v, r in med.items() for o, k in n_at.items()
+        },
         # CPU seconds of the process (not the wall): what a quiet machine's cores would
         # spend; divided over `cores` cores, assuming the convolutions scale across them
         "cpu_windows_per_s": cpu_rate,
@@ -95,6 +118,43 @@ def bench(
         },
         "times_s": times,
     }  # fmt: skip
+    if e2e_pings > 0:
+        out["e2e"] = pipeline(nets[""], med, window, e2e_pings, e2e_batch, variants, seed)
+    return out
+
+
+def pipeline(
+    net: torch.nn.Module,
+    forward_rate: dict[str, float],
+    window: tuple[int, int],
+    pings: int,
+    batch: int,
+    variants: Sequence[str],
+    seed: int = 0,
+) -> dict:
+    """Whole-pipeline windows/s of :func:`predict_waterfall` (fp32 / bf16, training overlap
+    0.75) over a ``pings x 2 x window_bins`` line, as a ratio to the bare forward pass, and
+    the seconds one paper line's stitching takes (both heads)."""
+    from sss2bathy.data.cnn_normals import predict_waterfall, stitch_windows
+    from sss2bathy.data.windows import line_windows
+
+    rng = torch.Generator().manual_seed(seed)
+    line = torch.randn(pings, 2, window[1], generator=rng).numpy()
+    n_windows = 2 * len(line_windows(pings, window[1], window[0], window[1], 0.75))
+    res: dict = {"pings": pings, "batch": batch, "windows": n_windows}
+    for precision in [v for v in ("fp32", "bf16") if v in variants]:
+        t0 = time.perf_counter()
+        predict_waterfall(net, line, window, 0.75, batch_size=batch, precision=precision)
+        rate = n_windows / (time.perf_counter() - t0)
+        res[f"{precision}_windows_per_s"] = rate
+        res[f"{precision}_ratio_to_forward"] = rate / forward_rate[precision]
+    origins = line_windows(2000, window[1], window[0], window[1], 0.75)
+    preds = torch.randn(len(origins), *window, generator=rng).numpy()
+    t0 = time.perf_counter()
+    for _ in range(2):
+        stitch_windows(preds, origins, (2000, window[1]))
+    res["stitch_s_per_paper_line"] = time.perf_counter() - t0
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,9 +164,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    p.add_argument("--overlaps", nargs="+", type=float, default=list(OVERLAPS))
+    p.add_argument("--e2e-pings", type=int, default=0, help="0 = no pipeline run")
+    p.add_argument("--e2e-batch", type=int, default=64)
+    p.add_argument("--threads", type=int, default=0, help="torch threads; 0 = torch's")
     args = p.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     out = bench(args.base_width, args.n_blocks, args.batch, repeats=args.repeats,
-                variants=args.variants)  # fmt: skip
+                variants=args.variants, overlaps=args.overlaps, e2e_pings=args.e2e_pings,
+                e2e_batch=args.e2e_batch)  # fmt: skip
     print(json.dumps(out, indent=2))
     return 0
 

@@ -33,7 +33,16 @@ def predict(cfg: DictConfig) -> dict:
                 "use_draped_mask: the survey has no MBES grid; set use_draped_mask=false"
             )
         draped = drape_survey(survey, folder, lines=names)
-    preds = predict_normals(ckpt, survey, folder, names, draped, window_cfg=None)
+    preds = predict_normals(
+        ckpt,
+        survey,
+        folder,
+        names,
+        draped,
+        window_cfg=None,
+        precision=str(cfg.get("precision", "fp32")),
+        overlap=cfg.get("overlap"),
+    )
     log.info("predicted %d lines of %s with %s", len(preds), survey.name, ckpt)
     if cfg.render and draped is not None:
         name = names[0]

@@ -7,10 +7,15 @@ network from the checkpoint alone (:func:`load_normal_net`, classes of ``sss2bat
 predicting and stitching (:func:`predict_normals`) and caching the predictions.
 
 Each head of each line is cut into windows of ``window_pings x window_bins`` with the
-training overlap (origins from :func:`sss2bathy.data.windows.line_windows`: a regular
-stride, the last window flush with the end), the windows run through the network in
-batches, and overlapping predictions are averaged back into the ``(P, 2, B)`` waterfall.
-Lines shorter than a window are zero-padded (and the padding cropped off).
+training overlap, or the inference ``overlap`` when one is given (origins from
+:func:`sss2bathy.data.windows.line_windows`: a regular stride, the last window flush with
+the end), the windows run through the network in batches, and overlapping predictions are
+averaged back into the ``(P, 2, B)`` waterfall (one ``bincount`` per head, no loop over
+windows). Lines shorter than a window are zero-padded (and the padding cropped off).
+Inference overlap 0.5 instead of the training 0.75 halves the windows (the cost), bf16
+``precision`` nearly halves each window's cost on a CPU with AVX512-BF16 but multiplies it
+~170x on an AVX2-only CPU (emulated; :func:`cpu_has_native_bf16`, a warning)
+(``python -m benchmarks.cnn_inference``).
 
 Inputs come from the sidescan alone, exactly as in training
 (:class:`sss2bathy.data.windows.WindowLine`): the intensity is normalised over the bins
@@ -25,8 +30,9 @@ and scoring only) are OR-ed into the returned mask and never change a prediction
 Invalid bins hold NaN in ``n_lat``.
 
 Results are cached per line under ``survey_dir/predictions/<key>/<line>.npz`` where ``key``
-hashes the checkpoint file's content, the window size and overlap, the input channels and
-the sonar-mask parameters; a cached file whose key, shape or mask does not match is
+hashes the checkpoint file's content, the window size and overlap (the one used), the input
+channels, the sonar-mask parameters and the precision (only when not fp32, so older float32
+caches stay valid); a cached file whose key, shape or mask does not match is
 recomputed with a warning.
 """
 
@@ -204,6 +210,19 @@ def check_precision(precision: str) -> str:
     return precision
 
 
+def check_overlap(overlap: Any, key: str = "overlap") -> float | None:
+    """``overlap`` as a float if it is ``None`` (the training overlap) or a fraction in
+    [0, 1), else a ``ValueError`` naming ``key``."""
+    if overlap is None:
+        return None
+    if not isinstance(overlap, int | float) or isinstance(overlap, bool) or not 0 <= overlap < 1:
+        raise ValueError(
+            f"{key}: expected null (the training overlap) or a fraction in [0, 1), "
+            f"found {overlap!r}"
+        )
+    return float(overlap)
+
+
 def predict_waterfall(
     net: nn.Module,
     intensity: np.ndarray,
@@ -223,7 +242,8 @@ def predict_waterfall(
         overlap: fraction of a window shared with the next, in [0, 1).
         batch_size: windows per forward pass.
         precision: ``"fp32"`` or ``"bf16"`` (``torch.autocast`` to bfloat16 on ``device``:
-            1.9x the windows/s of float32 on an AVX512-BF16 CPU for the paper network,
+            1.9x the windows/s of float32 on an AVX512-BF16 CPU for the paper network, but
+            ~170x slower on an AVX2-only CPU, where it is emulated: a warning says so;
             ``benchmarks/cnn_inference.py``; n_lat changes by ~1e-2, see the README).
 
     Returns:
@@ -264,7 +284,23 @@ def predict_waterfall(
 def _autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
     if precision == "fp32":
         return contextlib.nullcontext()
+    if device.type == "cpu" and precision == "bf16" and not cpu_has_native_bf16():
+        log.warning(
+            "precision=bf16 on a CPU without native bfloat16 (oneDNN: no AVX512-BF16/AMX; "
+            "capability %s): emulated, ~170x SLOWER than fp32 for the paper network "
+            "(benchmarks/cnn_inference.py); use fp32 on this machine",
+            torch.backends.cpu.get_cpu_capability(),
+        )
     return torch.autocast(device_type=device.type, dtype=PRECISIONS[precision])
+
+
+def cpu_has_native_bf16() -> bool:
+    """Whether oneDNN runs bfloat16 convolutions natively on this CPU (AVX512-BF16 / AMX);
+    without, CPU autocast to bf16 is emulated and far slower than float32."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # a torch without the op: assume native
+        return True
 
 
 # --------------------------------------------------------------------- masks
@@ -386,6 +422,7 @@ def predict_normals(
     window_cfg: Mapping[str, Any] | None = None,
     device: str | torch.device | None = None,
     precision: str = "fp32",
+    overlap: float | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Predicted n_lat waterfalls of whole lines, cached under ``survey_dir/predictions/``.
 
@@ -403,6 +440,9 @@ def predict_normals(
         device: torch device; default CUDA if available, else CPU.
         precision: ``"fp32"`` | ``"bf16"`` (:func:`predict_waterfall`); bf16 predictions
             are cached under their own key.
+        overlap: inference overlap in [0, 1) instead of ``window_cfg``'s (the training
+            overlap); None: the training overlap. Fewer windows, fewer forward passes (0.5
+            instead of 0.75: half); cached under the overlap used.
 
     Returns:
         ``{line: (n_lat (P, 2, B) float32, NaN at invalid bins, mask (P, 2, B) uint8)}``; the
@@ -423,8 +463,11 @@ def predict_normals(
         raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {ckpt_path}")
     if window_cfg is None:
         window_cfg = checkpoint_window_config(ckpt_path)
-    h, w, overlap, batch_size = _window_params(window_cfg)
+    h, w, train_overlap, batch_size = _window_params(window_cfg)
     check_precision(precision)
+    overlap = check_overlap(overlap)
+    if overlap is None:
+        overlap = train_overlap
     spec = checkpoint_input_spec(ckpt_path)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     key_fields = {

@@ -57,7 +57,12 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from sss2bathy.data.cnn_normals import latest_checkpoint, predict_normals
+from sss2bathy.data.cnn_normals import (
+    PRECISIONS,
+    check_overlap,
+    latest_checkpoint,
+    predict_normals,
+)
 from sss2bathy.data.holdout import AltimeterSplit, split_altimeter
 from sss2bathy.data.masks import SonarMaskConfig, sonar_only_mask
 from sss2bathy.data.normalize import normalize_intensity
@@ -133,6 +138,8 @@ def build_ping_table(
     need_intensity: bool = False,
     drape: Mapping[str, Any] | None = None,
     sonar_mask: Mapping[str, Any] | None = None,
+    cnn_precision: str = "fp32",
+    cnn_overlap: float | None = None,
 ) -> PingTable:
     """Concatenate the lines' navigation, targets and masks into one :class:`PingTable`.
 
@@ -147,6 +154,10 @@ def build_ping_table(
             (``normals="gt"`` only).
         sonar_mask: :class:`~sss2bathy.data.masks.SonarMaskConfig` fields (``None``:
             defaults), the mask of ``normals="cnn"`` and ``"none"``.
+        cnn_precision: ``"fp32"`` | ``"bf16"``, the CNN's inference precision
+            (``normals="cnn"``).
+        cnn_overlap: the CNN's inference overlap in [0, 1); ``None``: ``window``'s (the
+            training overlap).
     """
     sonar_mask = SonarMaskConfig.coerce(sonar_mask)
     if normals not in NORMAL_SOURCES:
@@ -175,6 +186,8 @@ def build_ping_table(
             list(line_names),
             None,
             dict(window) if window is not None else None,
+            precision=cnn_precision,
+            overlap=cnn_overlap,
         )
     n_lat, masks, intensity = [], [], []
     for ln in lines:
@@ -367,6 +380,10 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         cnn_scale: with ``"latest"``, only CNN runs of this ``scale.name`` (None: any).
         window: the CNN's window (``window_pings``, ``window_bins``, ``overlap``); ``None``:
             the training windows stored in the checkpoint.
+        cnn_precision: ``"fp32"`` | ``"bf16"``: the CNN's inference precision
+            (``normals="cnn"``; bf16 = CPU/GPU autocast to bfloat16, cached apart).
+        cnn_overlap: the CNN's inference overlap, a fraction in [0, 1) (0.5: half the
+            windows of the training 0.75); ``None``: the training overlap.
         need_intensity: hold normalised intensities (Lambertian sensor model).
         batch_pings: pings per batch (64 in the paper).
         altimeter_points: altimeter points per batch (2000 in the paper), drawn with
@@ -407,6 +424,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         z_margin: float = 0.25,
         z_margin_m: float = 2.0,
         holdout: Mapping[str, Any] | None = None,
+        cnn_precision: str = "fp32",
+        cnn_overlap: float | None = None,
     ) -> None:
         super().__init__()
         if normals not in NORMAL_SOURCES:
@@ -423,6 +442,11 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         require_number("z_margin", z_margin, lambda v: v >= 0, "a fraction >= 0")
         require_number("z_margin_m", z_margin_m, lambda v: v >= 0, "a number >= 0 (m)")
         window = check_window(window)
+        if cnn_precision not in PRECISIONS:
+            raise ValueError(
+                f"cnn_precision: expected one of {list(PRECISIONS)}, found {cnn_precision!r}"
+            )
+        cnn_overlap = check_overlap(cnn_overlap, "cnn_overlap")
         if steps_per_epoch is not None and int(steps_per_epoch) < 1:
             raise ValueError(f"steps_per_epoch: expected None or >= 1, found {steps_per_epoch}")
         self.survey_cfg = survey
@@ -434,6 +458,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.cnn_runs_dir = cnn_runs_dir
         self.cnn_scale = cnn_scale
         self.window = window
+        self.cnn_precision = cnn_precision
+        self.cnn_overlap = cnn_overlap
         self.need_intensity = bool(need_intensity)
         self.batch_pings = int(batch_pings)
         self.altimeter_points = int(altimeter_points)
@@ -504,6 +530,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             self.need_intensity,
             self.drape,
             self.sonar_mask,
+            self.cnn_precision,
+            self.cnn_overlap,
         )
         alt = self._fit_altimeter(survey)
         if alt.shape[0] == 0:

@@ -51,6 +51,81 @@ def test_stitch_averages_overlaps_and_rejects_outside_windows():
         stitch_windows(windows, [(0, 0), (0, 4)], (2, 6))
 
 
+def _stitch_loop(windows, origins, shape):
+    """The reference: one Python iteration per window (what ``stitch_windows`` vectorises)."""
+    total = np.zeros(shape, dtype=np.float64)
+    count = np.zeros(shape, dtype=np.int64)
+    h, w = windows.shape[1:]
+    for win, (p, b) in zip(windows, origins, strict=True):
+        total[p : p + h, b : b + w] += win
+        count[p : p + h, b : b + w] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return mean.astype(np.float32), count.astype(np.int32)
+
+
+@pytest.mark.parametrize("overlap", [0.0, 0.5, 0.75, 0.9])
+def test_vectorised_stitch_equals_the_per_window_loop(overlap):
+    rng = np.random.default_rng(3)
+    shape, (h, w) = (301, 40), (64, 24)
+    origins = line_windows(*shape, h, w, overlap)
+    # plus irregular windows: stacked several deep, some pixels covered by none
+    extra = np.stack([rng.integers(0, shape[0] - h + 1, 9), rng.integers(0, shape[1] - w + 1, 9)])
+    origins = np.concatenate([origins, extra.T])
+    windows = rng.normal(size=(len(origins), h, w)).astype(np.float32)
+    mean, count = stitch_windows(windows, origins, shape)
+    ref_mean, ref_count = _stitch_loop(windows, origins, shape)
+    np.testing.assert_array_equal(count, ref_count)
+    np.testing.assert_array_equal(mean, ref_mean)  # same float64 sums in the same order
+
+
+def test_predict_waterfall_equals_per_window_forward_and_loop_stitch(checkpoint):
+    """Batched gathering + vectorised stitching = running each window alone and averaging
+    with a loop, for any batch size (a partial last batch included)."""
+    _, net = checkpoint
+    intensity = np.random.default_rng(4).normal(size=(45, 2, 20)).astype(np.float32)
+    h, w = 16, 12
+    for overlap in (0.75, 0.5):
+        origins = line_windows(45, 20, h, w, overlap)
+        ref = np.empty((45, 2, 20), dtype=np.float32)
+        for side in range(2):
+            with torch.no_grad():
+                preds = np.stack(
+                    [
+                        net(
+                            torch.from_numpy(intensity[p : p + h, side, b : b + w])[None, None]
+                        ).numpy()[0, 0]
+                        for p, b in origins
+                    ]
+                )
+            ref[:, side] = _stitch_loop(preds, origins, (45, 20))[0]
+        for batch in (1, 5, 64):
+            out = predict_waterfall(net, intensity, (h, w), overlap, batch_size=batch)
+            np.testing.assert_allclose(out, ref, atol=1e-6)
+
+
+def test_inference_overlap_overrides_the_training_one_and_keys_the_cache(checkpoint, tmp_path):
+    path, net = checkpoint
+    survey = Survey(name="tiny", lines=[make_line("a", 40, 20, 0)])
+    window_cfg = {"window_pings": 8, "window_bins": 12, "overlap": 0.75, "batch_size": 4}
+    default = predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu")["a"][0]
+    same = predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", overlap=0.75)
+    half = predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", overlap=0.5)
+    np.testing.assert_array_equal(same["a"][0], default)
+    keys = sorted(p.name for p in (tmp_path / "predictions").iterdir())
+    assert len(keys) == 2  # the explicit training overlap shares the default's cache
+    # overlap 0.5 = the training windows' predict_waterfall at 0.5, masked
+    inputs, sonar = line_inputs(make_line("a", 40, 20, 0), None, None)
+    expected = predict_waterfall(net, inputs, (8, 12), 0.5, batch_size=4)
+    expected[sonar != MASK_VALID] = np.nan
+    np.testing.assert_allclose(half["a"][0], expected, atol=1e-6, equal_nan=True)
+    ok = np.isfinite(default)
+    assert not np.allclose(half["a"][0][ok], default[ok])  # fewer windows: another average
+    for bad in (1.0, -0.1, "0.5", True):
+        with pytest.raises(ValueError, match=r"^overlap: expected null .* found"):
+            predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", overlap=bad)
+
+
 def make_line(name: str, n_pings: int, n_bins: int, seed: int) -> SidescanLine:
     rng = np.random.default_rng(seed)
     t = np.arange(n_pings, dtype=np.float64)
@@ -302,3 +377,18 @@ def test_bf16_inference_is_close_to_fp32_and_cached_apart(checkpoint, tmp_path):
     np.testing.assert_allclose(a16[ok], a32[ok], atol=0.03)
     with pytest.raises(ValueError, match="precision: expected one of"):
         predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", "half")
+
+
+def test_bf16_on_a_cpu_without_native_bfloat16_warns(checkpoint, monkeypatch, caplog):
+    _, net = checkpoint
+    intensity = np.zeros((8, 2, 8), dtype=np.float32)
+    monkeypatch.setattr(cnn_normals, "cpu_has_native_bf16", lambda: False)
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.data.cnn_normals"):
+        predict_waterfall(net, intensity, (8, 8), 0.75, precision="bf16")
+    assert "without native bfloat16" in caplog.text
+    caplog.clear()
+    monkeypatch.setattr(cnn_normals, "cpu_has_native_bf16", lambda: True)
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.data.cnn_normals"):
+        predict_waterfall(net, intensity, (8, 8), 0.75, precision="bf16")
+        predict_waterfall(net, intensity, (8, 8), 0.75)
+    assert "without native bfloat16" not in caplog.text

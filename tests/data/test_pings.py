@@ -182,6 +182,11 @@ def test_steps_per_epoch_and_validation(tiny_survey):
         ({"window": {"window_pings": 0}}, "window.window_pings: expected a positive integer"),
         ({"window": {"window_bins": -8}}, "window.window_bins: expected a positive integer"),
         ({"window": {"overlap": 1.0}}, "window.overlap: expected a fraction in [0, 1), found 1.0"),
+        (
+            {"cnn_precision": "fp16"},
+            "cnn_precision: expected one of ['fp32', 'bf16'], found 'fp16'",
+        ),
+        ({"cnn_overlap": 1.0}, "cnn_overlap: expected null (the training overlap) or a fraction"),
     ],
 )
 def test_constructor_names_the_bad_argument(tiny_survey, kw, message):
