@@ -54,6 +54,7 @@ from sss2bathy.data.masks import (
     SonarMaskConfig,
     check_channels,
     input_channels,
+    relative_channel,
     sonar_normalized_intensity,
     sonar_only_mask,
 )
@@ -406,9 +407,18 @@ def line_inputs(
     (P, 2, B) uint8)`` (intensity normalised over the sonar-only valid bins, then the
     channels of :func:`sss2bathy.data.masks.input_channels`)."""
     intensity, mask = sonar_normalized_intensity(line, sonar_mask)
+    channels = check_channels(channels)
+    relative = None
+    if "relative" in channels:
+        relative = np.transpose(relative_channel(intensity, mask), (1, 0, 2))
     r_max = float(np.max(line.range_m))
     inputs = input_channels(
-        np.transpose(intensity, (1, 0, 2)), line.range_m, line.altitude_m, r_max, channels
+        np.transpose(intensity, (1, 0, 2)),
+        line.range_m,
+        line.altitude_m,
+        r_max,
+        channels,
+        relative=relative,
     )
     return np.ascontiguousarray(np.transpose(inputs, (2, 0, 1, 3))), mask  # (2,C,P,B)->(P,2,C,B)
 

@@ -21,9 +21,11 @@ normalisation and the CNN's training input normalisation, so training and infere
 identical inputs, and removing the MBES grid changes nothing the sidescan stage uses.
 
 :func:`input_channels` stacks the CNN's inputs from the same data: the normalised
-intensity and, optionally, the flat-seabed geometry the network can not see within its
-receptive field (``grazing``: ``sin g = altitude / r``, 0 before the first return;
-``range``: ``r / r_max``).
+intensity, or (``relative``) the intensity relative to its along-track mean at the same
+range (:func:`~sss2bathy.data.normalize.relative_intensity`: beam pattern, gain, altitude
+and the sediment's mean angular response divide out), and, optionally, the flat-seabed
+geometry the network can not see within its receptive field (``grazing``:
+``sin g = altitude / r``, 0 before the first return; ``range``: ``r / r_max``).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.data.normalize import normalize_intensity
+from sss2bathy.data.normalize import normalize_intensity, relative_intensity
 from sss2bathy.geometry import arc_basis
 from sss2bathy.survey import (
     MASK_NO_HIT,
@@ -45,8 +47,11 @@ from sss2bathy.survey import (
     MASK_WATER_COLUMN,
 )
 
-#: CNN input channels :func:`input_channels` can build (``intensity`` must come first).
-CHANNELS = ("intensity", "grazing", "range")
+#: CNN input channels :func:`input_channels` can build; the first is an intensity channel
+#: (:data:`INTENSITY_CHANNELS`).
+CHANNELS = ("intensity", "relative", "grazing", "range")
+#: The channels that can come first: the intensity the network reads.
+INTENSITY_CHANNELS = ("intensity", "relative")
 DEFAULT_CHANNELS = ("intensity",)
 
 
@@ -230,6 +235,14 @@ def sonar_normalized_intensity(
     return normalize_intensity(line.intensity, valid), mask
 
 
+def relative_channel(intensity: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``(P, 2, B)`` float32 ``relative`` channel of a line: its normalised ``intensity``
+    relative to the along-track mean of the sonar-valid bins (``mask == MASK_VALID``) at the
+    same range (:func:`~sss2bathy.data.normalize.relative_intensity`); line-level, so
+    training windows and whole-line prediction see the same values."""
+    return relative_intensity(intensity, (mask == MASK_VALID) & np.isfinite(intensity))
+
+
 # ------------------------------------------------------------------------ inputs
 def check_channels(channels: Sequence[str] | None, name: str = "input_channels") -> tuple[str, ...]:
     """Validated channel names (``None``: intensity only); ``intensity`` first, no repeats."""
@@ -239,10 +252,10 @@ def check_channels(channels: Sequence[str] | None, name: str = "input_channels")
         raise ValueError(f"{name}: expected a list of channel names, found {channels!r}")
     out = tuple(str(c) for c in channels)
     unknown = [c for c in out if c not in CHANNELS]
-    if not out or out[0] != "intensity" or unknown or len(set(out)) != len(out):
+    if not out or out[0] not in INTENSITY_CHANNELS or unknown or len(set(out)) != len(out):
         raise ValueError(
-            f"{name}: expected distinct names of {list(CHANNELS)} starting with 'intensity', "
-            f"found {list(out)}"
+            f"{name}: expected distinct names of {list(CHANNELS)} starting with one of "
+            f"{list(INTENSITY_CHANNELS)}, found {list(out)}"
         )
     return out
 
@@ -253,6 +266,7 @@ def input_channels(
     altitude_m: np.ndarray,
     r_max: float,
     channels: Sequence[str] | None = None,
+    relative: np.ndarray | None = None,
 ) -> np.ndarray:
     """Stack the CNN's input channels of a waterfall (or a window of one).
 
@@ -262,9 +276,12 @@ def input_channels(
         altitude_m: ``(P,)`` altitude per ping (m); NaN reads as "no seabed" (grazing 0).
         r_max: the line's largest slant range (m), the scale of ``range``.
         channels: names from :data:`CHANNELS` (None: intensity only).
+        relative: ``(..., P, B)`` the ``relative`` channel of the same bins
+            (:func:`relative_channel` of the whole line, then cut like ``intensity``);
+            needed when ``channels`` holds ``relative``.
 
     Returns:
-        ``(..., C, P, B)`` float32: ``intensity``; ``grazing`` = ``altitude / r`` where
+        ``(..., C, P, B)`` float32: ``intensity``; ``relative``; ``grazing`` = ``altitude / r`` where
         ``r >= altitude`` (the sine of the flat-seabed grazing angle), else 0;
         ``range`` = ``r / r_max``.
     """
@@ -279,10 +296,19 @@ def input_channels(
         )
     if not (math.isfinite(r_max) and r_max > 0):
         raise ValueError(f"r_max: expected a positive range (m), found {r_max!r}")
+    if "relative" in channels and (relative is None or np.shape(relative) != x.shape):
+        found = None if relative is None else np.shape(relative)
+        raise ValueError(
+            f"relative: expected the 'relative' channel of shape {x.shape} like intensity, "
+            f"found {found}"
+        )
     out = []
     for name in channels:
         if name == "intensity":
             out.append(x)
+            continue
+        if name == "relative":
+            out.append(np.asarray(relative, np.float32))
             continue
         if name == "grazing":
             hh = np.nan_to_num(h, nan=0.0)[:, None]

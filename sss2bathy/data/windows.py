@@ -47,6 +47,7 @@ from sss2bathy.data.masks import (
     SonarMaskConfig,
     check_channels,
     input_channels,
+    relative_channel,
     sonar_normalized_intensity,
 )
 from sss2bathy.draping import DrapeConfig, DrapedLine, drape_survey
@@ -124,6 +125,8 @@ class WindowLine:
         altitude_m: ``(P,)`` altitude (m; NaN where missing), for the geometry channels.
         range_m: ``(B,)`` slant ranges (m).
         channels: the network's input channels (:func:`~sss2bathy.data.masks.input_channels`).
+        relative: ``(P, 2, B)`` float32 ``relative`` channel of the whole line
+            (:func:`~sss2bathy.data.masks.relative_channel`), when ``channels`` holds it.
     """
 
     name: str
@@ -133,6 +136,7 @@ class WindowLine:
     altitude_m: np.ndarray | None = None
     range_m: np.ndarray | None = None
     channels: tuple[str, ...] = ("intensity",)
+    relative: np.ndarray | None = None
 
     @classmethod
     def from_draped(
@@ -150,7 +154,9 @@ class WindowLine:
                 f"found {draped.shape}"
             )
         valid = draped.valid & np.isfinite(draped.n_lat) & np.isfinite(line.intensity)
-        intensity, _ = sonar_normalized_intensity(line, sonar_mask)
+        intensity, mask = sonar_normalized_intensity(line, sonar_mask)
+        channels = check_channels(channels)
+        relative = relative_channel(intensity, mask) if "relative" in channels else None
         return cls(
             name=line.name,
             intensity=intensity,
@@ -158,7 +164,8 @@ class WindowLine:
             valid=valid,
             altitude_m=np.asarray(line.altitude_m, np.float32),
             range_m=np.asarray(line.range_m, np.float32),
-            channels=check_channels(channels),
+            channels=channels,
+            relative=relative,
         )
 
     def inputs(self, pings: slice, side: int, bins: slice) -> np.ndarray:
@@ -166,13 +173,25 @@ class WindowLine:
         x = self.intensity[pings, side, bins]
         if self.channels == ("intensity",):
             return x[None]
+        rel = None
+        if "relative" in self.channels:
+            if self.relative is None:
+                raise ValueError(
+                    f"line '{self.name}': input channels {list(self.channels)} need its "
+                    "'relative' channel (build the line with WindowLine.from_draped)"
+                )
+            rel = self.relative[pings, side, bins]
+            if self.channels == ("relative",):
+                return rel[None]
         if self.altitude_m is None or self.range_m is None:
             raise ValueError(
                 f"line '{self.name}': input channels {list(self.channels)} need altitude_m and "
                 "range_m (build the line with WindowLine.from_draped)"
             )
         r_max = float(np.max(self.range_m))
-        return input_channels(x, self.range_m[bins], self.altitude_m[pings], r_max, self.channels)
+        return input_channels(
+            x, self.range_m[bins], self.altitude_m[pings], r_max, self.channels, relative=rel
+        )
 
 
 class SidescanWindowDataset(Dataset):

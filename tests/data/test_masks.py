@@ -12,8 +12,10 @@ from sss2bathy.data.masks import (
     check_channels,
     flat_seabed_depression,
     input_channels,
+    relative_channel,
     sonar_mask,
 )
+from sss2bathy.data.normalize import relative_intensity
 from sss2bathy.geometry import attitude_to_rotation
 from sss2bathy.survey import (
     MASK_NO_HIT,
@@ -113,3 +115,44 @@ def test_input_channels():
     for bad in (["grazing", "intensity"], ["intensity", "intensity"], ["intensity", "depth"]):
         with pytest.raises(ValueError, match="input_channels"):
             check_channels(bad)
+    rel = np.full_like(x, 2.0)
+    out = input_channels(x, r, h, 16.0, ["relative", "range"], relative=rel)
+    np.testing.assert_array_equal(out[0], rel)
+    assert check_channels(["relative"]) == ("relative",)
+    with pytest.raises(ValueError, match="relative: expected the 'relative' channel of shape"):
+        input_channels(x, r, h, 16.0, ["intensity", "relative"])
+
+
+def test_relative_intensity_divides_out_what_every_range_column_has():
+    """Range-dependent gain (beam pattern, TVG, sediment's angular response) divides out; a
+    bright patch stays bright relative to its surroundings; masked bins do not count."""
+    rng = np.random.default_rng(0)
+    n_pings, n_bins = 400, 64
+    gain = np.exp(-np.linspace(0.0, 3.0, n_bins))  # far range much darker
+    speckle = rng.gamma(8.0, 1 / 8.0, (n_pings, 2, n_bins))
+    x = speckle * gain[None, None, :] * np.array([1.0, 5.0])[None, :, None]
+    x[200:210, 1, 30:34] *= 3.0  # a slope facing the sonar
+    valid = np.ones_like(x, bool)
+    valid[:, :, :5] = False  # water column: neither counted nor trusted
+    x[:, :, :5] = 1e3
+    rel = relative_intensity(x, valid, window_pings=101, smooth_bins=1)
+    assert rel.shape == x.shape and rel.dtype == np.float32
+    col_means = rel[:, :, 5:].mean(axis=0)
+    np.testing.assert_allclose(col_means, 1.0, atol=0.05)  # gain and per-head scale gone
+    assert rel[200:210, 1, 30:34].mean() > 2.5  # the bright patch reads ~3
+    # a dark far range is no darker than the near range once divided
+    assert abs(rel[:, 0, 55:].mean() - rel[:, 0, 10:20].mean()) < 0.05
+    # the window sees only valid bins; all-masked columns fall back to 1 (no division by 0)
+    none = relative_intensity(x, np.zeros_like(valid), window_pings=11, smooth_bins=3)
+    np.testing.assert_allclose(none, np.clip(x, 0, 8), rtol=1e-6)
+    with pytest.raises(ValueError, match="window_pings: expected a positive integer"):
+        relative_intensity(x, valid, window_pings=0)
+    with pytest.raises(ValueError, match="valid_mask: expected a bool array"):
+        relative_intensity(x, valid.astype(np.uint8))
+    # the channel of a line uses the sonar mask's valid bins
+    mask = np.where(valid, MASK_VALID, MASK_WATER_COLUMN).astype(np.uint8)
+    np.testing.assert_allclose(
+        relative_channel(x.astype(np.float32), mask),
+        relative_intensity(x.astype(np.float32), valid),
+        rtol=1e-6,
+    )

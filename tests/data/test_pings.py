@@ -249,7 +249,9 @@ def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
     assert t.n_lat[valid].abs().max() <= 1.0
 
 
-@pytest.mark.parametrize("channels", [("intensity",), ("intensity", "grazing", "range")])
+@pytest.mark.parametrize(
+    "channels", [("intensity",), ("intensity", "grazing", "range"), ("relative", "grazing")]
+)
 def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels):
     """SIREN-CNN-N2d's inputs (n_lat, mask, intensity) are the same with and without MBES."""
     ckpt = _tiny_checkpoint(tmp_path, channels)
