@@ -700,6 +700,13 @@ class RandomizeParams:
     mu_scale: tuple[float, float] | None = None
     exponent_offset: tuple[float, float] | None = None
     altitude_offset_m: tuple[float, float] | None = None
+    #: fly each line at its own altitude drawn from this range, following the seabed like an
+    #: AUV (the line's altitude minus its along-track smoothed altitude, plus the draw), so
+    #: the altitude says nothing of the slopes below (a hull-mounted sonar over hills is low
+    #: exactly where the seabed falls away on both sides)
+    altitude_m: tuple[float, float] | None = None
+    #: along-track smoothing (m) of the terrain following
+    altitude_smoothing_m: float = 15.0
 
 
 def _optional_pair(r: _Reader, key: str, **limits: float) -> tuple[float, float] | None:
@@ -741,6 +748,8 @@ def _read_randomize(r: _Reader) -> RandomizeParams | None:
         mu_scale=_optional_pair(mr, "mu_scale", gt=0.0),
         exponent_offset=_optional_pair(mr, "exponent_offset"),
         altitude_offset_m=_optional_pair(r, "altitude_offset_m"),
+        altitude_m=_optional_pair(r, "altitude_m", gt=0.0),
+        altitude_smoothing_m=r.number("altitude_smoothing_m", 15.0, gt=0.0),
     )
     for key in ("tvg_spreading_exponent", "tvg_absorption_factor"):
         pair = getattr(params, key)

@@ -166,6 +166,17 @@ def _draw(rng: np.random.Generator, pair: tuple[float, float] | None, current: f
     return current if pair is None else float(rng.uniform(pair[0], pair[1]))
 
 
+def _smooth_altitude(line: PlannedLine, smoothing_m: float) -> np.ndarray:
+    """The line's altitude, Gaussian-smoothed along track over ``smoothing_m`` metres."""
+    from scipy.ndimage import gaussian_filter1d
+
+    alt = np.asarray(line.altitude_m, np.float64)
+    steps = np.linalg.norm(np.diff(line.position[:, :2], axis=0), axis=1)
+    step = float(np.median(steps)) if steps.size else 1.0
+    sigma = smoothing_m / max(step, 1e-6)
+    return gaussian_filter1d(alt, sigma, mode="nearest") if sigma > 0.5 else alt
+
+
 def randomize_line(
     line: PlannedLine,
     index: int,
@@ -212,20 +223,27 @@ def randomize_line(
         exponent=np.maximum(physics.response.exponent + exp_offset, 1.0),
     )
     offset = _draw(rng, randomize.altitude_offset_m, 0.0)
-    if offset != 0.0:
-        up = np.array([0.0, 0.0, offset])
+    # terrain following at a drawn altitude (drawn last: the other draws stay as they were)
+    target = None if randomize.altitude_m is None else _draw(rng, randomize.altitude_m, 0.0)
+    if offset != 0.0 or target is not None:
+        shift = np.full(len(line.altitude_m), offset)
+        if target is not None:
+            shift += target - _smooth_altitude(line, randomize.altitude_smoothing_m)
+        up = np.zeros((len(shift), 3))
+        up[:, 2] = shift
         line = dataclasses.replace(
             line,
             position=line.position + up,
             nav_position=line.nav_position + up,
-            altitude_m=line.altitude_m + offset,
+            altitude_m=line.altitude_m + shift,
         )
-        low = float(line.altitude_m.min())
+        low = float(np.nanmin(line.altitude_m))
         if low < min_altitude_m:
+            key = "altitude_offset_m" if target is None else "altitude_offset_m / altitude_m"
             raise ValueError(
-                f"data.survey.randomize.altitude_offset_m: expected offsets that keep every "
-                f"altitude >= plan.min_altitude_m ({min_altitude_m} m), found {low:.2f} m on "
-                f"{line.name} (offset {offset:+.2f} m)"
+                f"data.survey.randomize.{key}: expected values that keep every altitude >= "
+                f"plan.min_altitude_m ({min_altitude_m} m), found {low:.2f} m on {line.name} "
+                f"(offset {offset:+.2f} m, altitude {target})"
             )
         validate_swath(line.name, line.position, line.rotation, sonar, terrain)
     calibration = calibrate_receiver(
@@ -254,6 +272,8 @@ def randomize_line(
         "exponent_offset": [round(float(v), 4) for v in exp_offset],
         "altitude_offset_m": round(offset, 3),
     }
+    if target is not None:
+        drawn["altitude_m"] = round(target, 3)
     return line, line_physics, drawn
 
 

@@ -227,5 +227,34 @@ def test_randomized_training_lines_draw_their_own_sensor_and_altitude(tiny_d1, t
 
 def test_randomized_altitude_below_the_minimum_is_named():
     cfg = SyntheticSurveyConfig.from_mapping(_randomized(randomize__altitude_offset_m=[-9.0, -8.0]))
-    with pytest.raises(ValueError, match=r"randomize\.altitude_offset_m: expected offsets"):
+    with pytest.raises(ValueError, match=r"randomize\.altitude_offset_m: expected values"):
         generate_survey(cfg)
+
+
+def test_randomized_terrain_following_altitude_is_independent_of_the_seabed(tiny_d1):
+    """``randomize.altitude_m``: each training line flies at its own drawn altitude, following
+    the seabed (its altitude varies only within the smoothing length), so altitude and the
+    slopes below are decorrelated; test lines stay the hull-mounted ones."""
+    base, _ = tiny_d1
+    cfg = SyntheticSurveyConfig.from_mapping(
+        _randomized(
+            randomize__altitude_offset_m=None,
+            randomize__altitude_m=[6.0, 9.0],
+            randomize__altitude_smoothing_m=15.0,
+        )
+    )
+    survey, terrain = generate_survey(cfg)
+    meta = survey.metadata["lines"]
+    for plain, line in zip(base.lines, survey.lines, strict=True):
+        if line.name in survey.splits["test"]:
+            np.testing.assert_array_equal(line.altitude_m, plain.altitude_m)
+            continue
+        target = meta[line.name]["randomized"]["altitude_m"]
+        assert 6.0 <= target <= 9.0
+        # the smoothed altitude is the drawn one; what is left is the seabed's short relief
+        assert abs(float(np.median(line.altitude_m)) - target) < 0.5
+        assert np.std(line.altitude_m) < np.std(plain.altitude_m) + 1e-9
+        below = terrain.sample_heights(line.position[:, 0], line.position[:, 1])
+        np.testing.assert_allclose(line.position[:, 2] - line.altitude_m, below, atol=1e-3)
+    with pytest.raises(ValueError, match=r"randomize\.altitude_m\[0\]: expected a number > 0"):
+        SyntheticSurveyConfig.from_mapping(_randomized(randomize__altitude_m=[-1.0, 2.0]))
