@@ -269,3 +269,25 @@ def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels)
     assert (a.mask == 0).float().mean() > 0.3 and torch.isfinite(a.n_lat[a.mask == 0]).all()
     # and no draping happened for either (no MBES touched)
     assert not list((tmp_path / "with_grid").glob("draped/*"))
+
+
+def test_cnn_probe_scores_the_prediction_siren_cnn_n2d_uses(tiny_survey, tmp_path, capsys):
+    """``eval.cnn_probe``: the MAE and bias of the very prediction SIREN-CNN-N2d gets, against
+    the draped truth, beside the constant; one line for a folder that is not a survey."""
+    from sss2bathy.draping import DrapeConfig, drape_survey
+    from sss2bathy.eval.cnn_probe import main, probe_survey
+
+    ckpt = _tiny_checkpoint(tmp_path)
+    rows = probe_survey(ckpt, tiny_survey, None, constant=0.05, window_cfg=WINDOW)
+    row = rows["all"]
+    survey = Survey.load(tiny_survey)
+    names = [ln.name for ln in survey.lines]
+    draped = drape_survey(survey, tiny_survey, DrapeConfig(), lines=names)
+    assert row["n"] > 100 and abs(row["bias"]) <= row["mae"]
+    truth = np.concatenate([draped[n].n_lat[draped[n].valid] for n in names])
+    assert row["constant_mae"] == pytest.approx(np.abs(0.05 - truth).mean(), rel=0.1)
+    assert row["skill"] == pytest.approx(row["mae"] / row["constant_mae"])
+    with pytest.raises(ValueError, match="expected a split of"):
+        probe_survey(ckpt, tiny_survey, "nope", constant=0.0, window_cfg=WINDOW)
+    assert main([str(ckpt), str(tmp_path / "nowhere")]) == 2
+    assert "expected a survey folder" in capsys.readouterr().err
