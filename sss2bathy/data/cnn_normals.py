@@ -204,10 +204,10 @@ def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "c
     return net.eval()
 
 
-def check_precision(precision: str) -> str:
-    """``precision`` if it is one of :data:`PRECISIONS`, else a ``ValueError``."""
+def check_precision(precision: str, key: str = "precision") -> str:
+    """``precision`` if it is one of :data:`PRECISIONS`, else a ``ValueError`` naming ``key``."""
     if precision not in PRECISIONS:
-        raise ValueError(f"precision: expected one of {list(PRECISIONS)}, found {precision!r}")
+        raise ValueError(f"{key}: expected one of {list(PRECISIONS)}, found {precision!r}")
     return precision
 
 

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.data.normalize import normalize_intensity, relative_intensity
+from sss2bathy.data.normalize import box_mean, normalize_intensity, relative_intensity
 from sss2bathy.geometry import arc_basis
 from sss2bathy.survey import (
     MASK_NO_HIT,
@@ -147,17 +147,6 @@ def flat_seabed_depression(
     return np.where(np.cos(roots[0]) >= np.cos(roots[1]), roots[0], roots[1])
 
 
-def _box_mean(values: np.ndarray, weights: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Weighted box mean over the last two axes of ``(..., P, B)`` (normalised convolution)."""
-    from scipy.ndimage import uniform_filter
-
-    full = (1,) * (values.ndim - 2) + tuple(size)
-    num = uniform_filter(values * weights, size=full, mode="nearest")
-    den = uniform_filter(weights.astype(np.float64), size=full, mode="nearest")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / np.maximum(den, 1e-300), np.nan)
-
-
 # ------------------------------------------------------------------------ masks
 def sonar_mask(
     intensity: np.ndarray,
@@ -209,7 +198,7 @@ def sonar_mask(
         seabed = mask == MASK_VALID
         norm = normalize_intensity(intensity, seabed).astype(np.float64)
         size = (cfg.shadow_smooth_pings, cfg.shadow_smooth_bins)
-        smooth = _box_mean(np.transpose(norm, (1, 0, 2)), np.transpose(seabed, (1, 0, 2)), size)
+        smooth = box_mean(np.transpose(norm, (1, 0, 2)), np.transpose(seabed, (1, 0, 2)), size)
         dark = np.transpose(smooth, (1, 0, 2)) < cfg.shadow_threshold
         mask[seabed & dark] |= MASK_SHADOW
     return mask

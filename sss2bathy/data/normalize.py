@@ -74,6 +74,25 @@ def normalize_intensity(
     return np.clip(out, 0.0, clip_max).astype(np.float32)
 
 
+def box_mean(
+    values: np.ndarray,
+    weights: np.ndarray,
+    size: tuple[int, int],
+    modes: tuple[str, str] = ("nearest", "nearest"),
+) -> np.ndarray:
+    """Weighted box mean over the last two axes of ``(..., P, B)`` (normalised convolution:
+    bins of weight 0 do not count); NaN where a box holds no weight. ``modes``: how each of
+    the two axes extends past its ends (:func:`scipy.ndimage.uniform_filter`)."""
+    from scipy.ndimage import uniform_filter
+
+    full = (1,) * (values.ndim - 2) + tuple(size)
+    mode = ("nearest",) * (values.ndim - 2) + tuple(modes)
+    num = uniform_filter(values * weights, size=full, mode=mode)
+    den = uniform_filter(weights.astype(np.float64), size=full, mode=mode)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.maximum(den, 1e-300), np.nan)
+
+
 #: Along-track extent (pings) of the reference of :func:`relative_intensity`: long enough to
 #: average the seabed's slopes out (at the demo's 4 Hz and 1.5 m/s, 101 pings are ~38 m of
 #: track), short enough to follow a slowly changing altitude and sediment.
@@ -103,8 +122,8 @@ def relative_intensity(
     Args:
         intensity: ``(P, 2, B)`` non-negative intensities (e.g. :func:`normalize_intensity`).
         valid_mask: ``(P, 2, B)`` bool, the seabed bins the means are taken over.
-        window_pings: odd along-track extent of the mean (>= 1).
-        smooth_bins: odd across-track extent of the mean (>= 1).
+        window_pings: along-track extent of the mean (>= 1).
+        smooth_bins: across-track extent of the mean (>= 1).
         clip_max: upper clip of the result (> 0).
 
     Returns:
@@ -116,8 +135,6 @@ def relative_intensity(
     >>> round(float(r[4, 0, 2]), 3), round(float(r[0, 1, 5]), 3)
     (1.778, 1.0)
     """
-    from scipy.ndimage import uniform_filter1d
-
     intensity = np.asarray(intensity)
     valid_mask = np.asarray(valid_mask)
     if intensity.ndim != 3 or intensity.shape[1] != 2:
@@ -135,26 +152,16 @@ def relative_intensity(
     x = np.where(np.isfinite(intensity), intensity, 0.0).astype(np.float64)
     if np.any(x < 0):
         raise ValueError(f"intensity: expected non-negative intensities, found min {x.min()}")
-    w = (valid_mask & np.isfinite(intensity)).astype(np.float64)
-    n_pings = x.shape[0]
-
-    def box(values: np.ndarray) -> np.ndarray:
-        out = values
-        if window_pings > 1:
-            size = min(window_pings, 2 * n_pings + 1)
-            out = uniform_filter1d(out, size=size, axis=0, mode="constant")
-        if smooth_bins > 1:
-            out = uniform_filter1d(out, size=smooth_bins, axis=2, mode="nearest")
-        return out
-
-    num, den = box(x * w), box(w)
-    eps = 1e-9
+    w = valid_mask & np.isfinite(intensity)
+    heads = (1, 0, 2)  # (P, 2, B) <-> (2, P, B): box_mean works over the last two axes
+    size = (min(window_pings, 2 * x.shape[0] + 1), smooth_bins)
+    # along track, pings past the line's ends do not exist (constant 0 weight)
+    local = box_mean(np.transpose(x, heads), np.transpose(w, heads), size, ("constant", "nearest"))
+    local = np.transpose(local, heads)
+    # fallback: the head's whole-line mean per range bin, then 1
+    count = w.sum(axis=0, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
-        local = np.where(den > eps, num / np.maximum(den, eps), np.nan)
-        # fallback: the head's whole-line mean per range bin, then 1
-        line_num = (x * w).sum(axis=0, keepdims=True)
-        line_den = w.sum(axis=0, keepdims=True)
-        line_mean = np.where(line_den > 0, line_num / np.maximum(line_den, eps), np.nan)
+        line_mean = np.where(count > 0, (x * w).sum(axis=0, keepdims=True) / count, np.nan)
     ref = np.where(np.isfinite(local), local, np.broadcast_to(line_mean, x.shape))
     ref = np.where(np.isfinite(ref) & (ref > 0), ref, 1.0)
     return np.clip(x / ref, 0.0, clip_max).astype(np.float32)

@@ -58,8 +58,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from sss2bathy.data.cnn_normals import (
-    PRECISIONS,
     check_overlap,
+    check_precision,
     latest_checkpoint,
     predict_normals,
 )
@@ -442,10 +442,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         require_number("z_margin", z_margin, lambda v: v >= 0, "a fraction >= 0")
         require_number("z_margin_m", z_margin_m, lambda v: v >= 0, "a number >= 0 (m)")
         window = check_window(window)
-        if cnn_precision not in PRECISIONS:
-            raise ValueError(
-                f"cnn_precision: expected one of {list(PRECISIONS)}, found {cnn_precision!r}"
-            )
+        check_precision(cnn_precision, "cnn_precision")
         cnn_overlap = check_overlap(cnn_overlap, "cnn_overlap")
         if steps_per_epoch is not None and int(steps_per_epoch) < 1:
             raise ValueError(f"steps_per_epoch: expected None or >= 1, found {steps_per_epoch}")
