@@ -38,8 +38,9 @@ def bench_cnn(
     Args:
         root: the project root whose ``conf/`` is composed (see :mod:`benchmarks.config`).
         scales: the scales whose CNN experiment is measured (when ``configs`` is ``None``).
-        configs: ``{name: {base_width, n_blocks, batch_size[, loss]}}`` in place of the
-            composed ones; without ``loss``, the demo experiment's loss.
+        configs: ``{name: {base_width, n_blocks, batch_size[, n_down, loss]}}`` in place of
+            the composed ones; without ``n_down``, 2 (the paper's); without ``loss``, the demo
+            experiment's loss.
         window: ``(pings, bins)`` of a window.
         max_batch: cap on the batch (a CPU may need minutes for a step of the paper's
             batch); windows/s is reported for the batch actually run.
@@ -61,7 +62,10 @@ def bench_cnn(
         loss_fn = NormalLoss.from_config(c.get("loss", default_loss))
         torch.manual_seed(seed)
         batch = int(c["batch_size"]) if max_batch is None else min(int(c["batch_size"]), max_batch)
-        net = NormalResNet(base_width=int(c["base_width"]), n_blocks=int(c["n_blocks"])).to(dev)
+        n_down = int(c.get("n_down", 2))
+        net = NormalResNet(
+            base_width=int(c["base_width"]), n_blocks=int(c["n_blocks"]), n_down=n_down
+        ).to(dev)
         opt = torch.optim.Adam(net.parameters(), lr=lr)
         gen = torch.Generator().manual_seed(seed)
         h, w = window
@@ -75,12 +79,12 @@ def bench_cnn(
             opt.step()
 
         times = time_runs(step, warmup, repeats, dev)
-        note = f"width {c['base_width']}, {c['n_blocks']} blocks, batch {batch}"
+        note = f"width {c['base_width']}, {c['n_blocks']} blocks, n_down {n_down}, batch {batch}"
         if batch != int(c["batch_size"]):
             note += f" (configured {c['batch_size']}; capped on {dev.type})"
         figures.append(figure(f"{name}: windows/s", "windows/s", rates(batch, times), note))
         figures.append(figure(f"{name}: step time", "s", times))
-        params[name] = {**{k: int(c[k]) for k in SIZE_KEYS}, "batch_run": batch}
+        params[name] = {**{k: int(c[k]) for k in SIZE_KEYS}, "n_down": n_down, "batch_run": batch}
     return {
         "title": TITLE,
         "params": {"window": list(window), "configs": params, "device": str(dev)},

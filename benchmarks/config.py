@@ -59,11 +59,12 @@ def survey_preset(root: str | Path, survey: str, scale: str) -> dict:
 
 def cnn_preset(root: str | Path, scale: str) -> dict[str, Any]:
     """The CNN experiment at a scale (``experiment=cnn scale=<scale>``): network width,
-    residual blocks, batch, and the composed loss config."""
+    residual blocks, down-sampling stages, batch, and the composed loss config."""
     cfg = compose(root, "train", ["experiment=cnn", f"scale={scale}"])
     return {
         "base_width": int(plain(cfg, "model.net.base_width")),
         "n_blocks": int(plain(cfg, "model.net.n_blocks")),
+        "n_down": int(plain(cfg, "model.net.n_down")),
         "batch_size": int(plain(cfg, "data.batch_size")),
         "loss": plain(cfg, "model.loss"),
     }

@@ -35,7 +35,7 @@ import numpy as np
 from sss2bathy.draping.config import DrapeConfig
 from sss2bathy.draping.draped import DrapedLine
 from sss2bathy.draping.surface import DrapeSurface
-from sss2bathy.geometry import arc_basis, head_plane_unit, incidence_cosine
+from sss2bathy.geometry import arc_basis, head_plane_unit
 from sss2bathy.survey import (
     MASK_NO_HIT,
     MASK_OUT_OF_BEAM,
@@ -387,7 +387,7 @@ def _drape_chunk(
         gx, gy = grad[:, 0], grad[:, 1]
         un = u_p[:, 2] - u_p[:, 0] * gx - u_p[:, 1] * gy
         vn = v_p[:, 2] - v_p[:, 0] * gx - v_p[:, 1] * gy
-        normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=1)
+        normal_len = np.sqrt(1.0 + gx * gx + gy * gy)
     else:
         # the face of the refining root, else the face of the nearer ray
         nearer_b = np.abs(ra - r) > np.abs(rb - r)
@@ -395,9 +395,16 @@ def _drape_chunk(
         normal = surf.normals_at(p_hit, tri_hit, -s_neg)
         un = np.einsum("qk,qk->q", u_p, normal)
         vn = np.einsum("qk,qk->q", v_p, normal)
+        normal_len = np.sqrt(np.einsum("qk,qk->q", normal, normal))
     # eq. 2-3: sigma N_v,y = u . N and N_v,z = -(v . N)
     nlat_hit = head_plane_unit(un, -vn)[0]
-    cos_inc = incidence_cosine(normal, p_hit, -s_neg)
+    # incidence cosine N.(s - p) / (|N| |s - p|) (geometry.incidence_cosine) in the head
+    # plane's coordinates: s - p = -(y u + z v), so N.(s - p) = -(y N.u + z N.v) and
+    # |s - p| = sqrt(y^2 + z^2) (u, v orthonormal), without forming (N, 3) vectors
+    with np.errstate(invalid="ignore"):
+        cos_inc = -(y_hit * un + z_hit * vn) / np.maximum(
+            normal_len * np.hypot(y_hit, z_hit), 1e-12
+        )
     graz_hit = np.pi / 2 - np.arccos(np.clip(cos_inc, -1.0, 1.0))
     has_normal = np.isfinite(nlat_hit)
     if not has_normal.all():  # (outside the grid) no normal: drop, losers included

@@ -166,7 +166,11 @@ def test_presets_come_from_the_composed_configs():
 
     paper = cnn_preset(ROOT, "paper")
     assert (paper["base_width"], paper["n_blocks"], paper["batch_size"]) == (64, 7, 64)
-    assert paper["loss"]["kind"] == "normal_aware"
+    # the paper's architecture (two down-sampling stages) and loss (eq. 4-5) at scale=paper;
+    # the demo's own choices (README "CNN") through the same keys
+    assert paper["n_down"] == 2 and paper["loss"]["kind"] == "normal_aware"
+    demo = cnn_preset(ROOT, "demo")
+    assert demo["n_down"] == 3 and demo["loss"]["kind"] == "l1"
     survey = survey_preset(ROOT, "synthetic_d1", "tiny")
     assert survey["sonar"]["n_bins"] > 0 and "terrain" in survey
     with pytest.raises(ValueError, match="root: expected the project checkout"):
