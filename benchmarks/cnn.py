@@ -39,14 +39,14 @@ def bench_cnn(
         root: the project root whose ``conf/`` is composed (see :mod:`benchmarks.config`).
         scales: the scales whose CNN experiment is measured (when ``configs`` is ``None``).
         configs: ``{name: {base_width, n_blocks, batch_size[, n_down, loss]}}`` in place of
-            the composed ones; without ``n_down``, 2 (the paper's); without ``loss``, the demo
+            the composed ones; without ``n_down``, the paper's 2; without ``loss``, the demo
             experiment's loss.
         window: ``(pings, bins)`` of a window.
         max_batch: cap on the batch (a CPU may need minutes for a step of the paper's
             batch); windows/s is reported for the batch actually run.
     """
     from sss2bathy.losses.normal import NormalLoss
-    from sss2bathy.models.normal_cnn import NormalResNet
+    from sss2bathy.models.normal_cnn import N_DOWN, NormalResNet
 
     dev = resolve_device(device)
     if configs is None:
@@ -62,7 +62,7 @@ def bench_cnn(
         loss_fn = NormalLoss.from_config(c.get("loss", default_loss))
         torch.manual_seed(seed)
         batch = int(c["batch_size"]) if max_batch is None else min(int(c["batch_size"]), max_batch)
-        n_down = int(c.get("n_down", 2))
+        n_down = int(c.get("n_down", N_DOWN))
         net = NormalResNet(
             base_width=int(c["base_width"]), n_blocks=int(c["n_blocks"]), n_down=n_down
         ).to(dev)

@@ -275,6 +275,7 @@ def test_cnn_probe_scores_the_prediction_siren_cnn_n2d_uses(tiny_survey, tmp_pat
     """``eval.cnn_probe``: the MAE and bias of the very prediction SIREN-CNN-N2d gets, against
     the draped truth, beside the constant; one line for a folder that is not a survey."""
     from sss2bathy.draping import DrapeConfig, drape_survey
+    from sss2bathy.data.cnn_normals import predict_normals
     from sss2bathy.eval.cnn_probe import main, probe_survey
 
     ckpt = _tiny_checkpoint(tmp_path)
@@ -286,6 +287,19 @@ def test_cnn_probe_scores_the_prediction_siren_cnn_n2d_uses(tiny_survey, tmp_pat
     assert row["n"] > 100 and abs(row["bias"]) <= row["mae"]
     truth = np.concatenate([draped[n].n_lat[draped[n].valid] for n in names])
     assert row["constant_mae"] == pytest.approx(np.abs(0.05 - truth).mean(), rel=0.1)
+    # the same numbers from the prediction and the truth directly, bin for bin
+    pred = predict_normals(ckpt, survey, tiny_survey, names, window_cfg=WINDOW)
+    err = np.concatenate(
+        [
+            (pred[n][0] - draped[n].n_lat)[
+                draped[n].valid & np.isfinite(draped[n].n_lat) & np.isfinite(pred[n][0])
+            ]
+            for n in names
+        ]
+    )
+    assert row["n"] == err.size
+    assert row["mae"] == pytest.approx(np.abs(err).mean(), rel=1e-6)
+    assert row["bias"] == pytest.approx(err.mean(), rel=1e-6, abs=1e-9)
     assert row["skill"] == pytest.approx(row["mae"] / row["constant_mae"])
     with pytest.raises(ValueError, match="expected a split of"):
         probe_survey(ckpt, tiny_survey, "nope", constant=0.0, window_cfg=WINDOW)
