@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytorch_lightning as pl
 import torch
 
@@ -28,6 +29,7 @@ from sss2bathy.eval.cnn_table import (
 )
 from sss2bathy.eval.maps import save_map_outputs
 from sss2bathy.metrics.normal import LineSideBias, NormalMetrics, masked_mean
+from sss2bathy.utils.atomic import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +206,11 @@ class SirenMapExport(pl.Callback):
         summary = {"final/" + k: v for k, v in final.metrics.items() if isinstance(v, int | float)}
         summary["epochs"] = int(trainer.current_epoch)
         summary["final/map_epoch"] = final.map_epoch
+        offsets = _line_offsets(pl_module)
+        if offsets is not None:
+            rms = float(np.sqrt(np.mean(offsets**2)))
+            summary["final/line_offset_rms"] = rms
+            pl_module.final_metrics["final/line_offset_rms"] = rms
         inputs = pl_module.inputs
         alt = inputs.altimeter
         self.paths = save_map_outputs(
@@ -216,7 +223,31 @@ class SirenMapExport(pl.Callback):
             origin=inputs.origin,
             altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
         )
+        if offsets is not None:
+            names = list(getattr(trainer.datamodule, "line_names", None) or [])
+            self.paths["line_offsets"] = write_line_offsets(offsets, names, self.folder(trainer))
         log.info("SIREN map written to %s (%s)", self.paths["map_tif"], dict(final.metrics))
+
+
+def _line_offsets(pl_module: pl.LightningModule) -> np.ndarray | None:
+    """``(n_lines, 2)`` learned n_lat offsets of a fit's normal sensor, or None (off)."""
+    sensor = getattr(pl_module, "sensor", None)
+    if not getattr(sensor, "use_line_offset", False):
+        return None
+    return sensor.offsets().cpu().numpy().astype(np.float64)
+
+
+def write_line_offsets(offsets: np.ndarray, line_names: Sequence[str], out_dir: Path) -> Path:
+    """``line_offsets.csv``: the n_lat offset a SIREN-N2d fit learned for each line and side
+    (``line_offset=true``; what it subtracted from the target normals)."""
+    if len(line_names) != offsets.shape[0]:
+        line_names = [str(i) for i in range(offsets.shape[0])]
+    rows = ["line,side,offset"]
+    for name, pair in zip(line_names, offsets, strict=True):
+        rows += [f"{name},port,{pair[0]:.6f}", f"{name},starboard,{pair[1]:.6f}"]
+    path = Path(out_dir) / "line_offsets.csv"
+    atomic_write_text(path, "\n".join(rows) + "\n")
+    return path
 
 
 def metrics_table(metrics: Mapping[str, Any], prefix: str = "test/") -> str:

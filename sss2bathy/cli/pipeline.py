@@ -26,6 +26,7 @@ STAGES: list[tuple[str, str, list[str]]] = [
     ("prepare_d1", "sss2bathy.cli.prepare", ["data/survey=synthetic_d1"]),
     ("prepare_d2", "sss2bathy.cli.prepare", ["data/survey=synthetic_d2"]),
     ("prepare_d3", "sss2bathy.cli.prepare", ["data/survey=synthetic_d3"]),
+    ("prepare_d1_site2", "sss2bathy.cli.prepare", ["data/survey=synthetic_d1_site2"]),
     ("cnn", "sss2bathy.cli.train", ["experiment=cnn"]),
     ("siren_direct_fit", "sss2bathy.cli.train", ["experiment=siren_direct_fit"]),
     ("siren_heights_only", "sss2bathy.cli.train", ["experiment=siren_heights_only"]),

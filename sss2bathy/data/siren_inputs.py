@@ -44,6 +44,7 @@ class SirenInputs:
         holdout: held-out altimeter points, or None.
         altimeter: ``(M, 3)`` fitted altimeter points, or None.
         origin: the survey origin (``{crs, easting, northing}``) for the georeferenced map.
+        n_lines: lines of the ping table (its ``line`` indices are ``0 .. n_lines - 1``).
     """
 
     bounds: tuple[float, float, float, float]
@@ -57,6 +58,7 @@ class SirenInputs:
     holdout: AltimeterSplit | None = None
     altimeter: torch.Tensor | None = None
     origin: dict[str, Any] | None = None
+    n_lines: int = 1
 
     @property
     def n_bins(self) -> int:
@@ -109,6 +111,7 @@ class SirenInputs:
             holdout=getattr(datamodule, "holdout_split", None),
             altimeter=getattr(datamodule, "altimeter", None),
             origin=getattr(datamodule, "origin", None),
+            n_lines=int(table.line.max()) + 1 if len(table.line) else 1,
         )
 
 

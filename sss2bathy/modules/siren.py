@@ -44,6 +44,7 @@ from sss2bathy.losses.siren import height_loss, total_loss
 from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.direct_fit import MBESCellFit
 from sss2bathy.models.intersection import FinderSettings
+from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
 from sss2bathy.models.siren import Siren
 from sss2bathy.modules.siren_parts import (
@@ -97,6 +98,10 @@ class SirenModule(pl.LightningModule):
             metric (:data:`~sss2bathy.modules.siren_parts.SELECT_BEST`), or the last (None).
         title: names the run in its map figures (e.g. ``"siren_gt_n2d on synthetic_d1_demo"``);
             None = the sensor model's title.
+        line_offset: learn one ``n_lat`` offset per (line, side) of the target normals (a
+            self-calibration of the CNN's bias, :mod:`sss2bathy.models.normal_sensor`); only
+            with a :class:`~sss2bathy.models.normal_sensor.NormalSensorModel`.
+        line_offset_weight: weight of the offsets' mean square in the loss (>= 0).
     """
 
     def __init__(
@@ -116,6 +121,8 @@ class SirenModule(pl.LightningModule):
         encoding_lr: float | None = None,
         select_best: str | None = None,
         title: str | None = None,
+        line_offset: bool = False,
+        line_offset_weight: float = 1.0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -133,6 +140,15 @@ class SirenModule(pl.LightningModule):
             raise ValueError(f"w_height: expected a non-negative weight, found {w_height}")
         if int(eval_every_n_epochs) < 1:
             raise ValueError(f"eval_every_n_epochs: expected >= 1, found {eval_every_n_epochs}")
+        if not isinstance(line_offset, bool):
+            raise ValueError(f"line_offset: expected true or false, found {line_offset!r}")
+        if line_offset:
+            if not isinstance(sensor, NormalSensorModel):
+                raise ValueError(
+                    "line_offset: expected the normal sensor model (SIREN-GT-N2d / CNN-N2d) "
+                    f"with line_offset=true, found sensor {type(sensor).__name__}"
+                )
+            sensor.enable_line_offset(line_offset_weight)
         self.sensor = sensor
         self.w_height = float(w_height)
         self.optimizer_factory = optimizer or (lambda params: torch.optim.Adam(params, lr=2e-4))
@@ -183,6 +199,8 @@ class SirenModule(pl.LightningModule):
             )
         elif self.sensor is not None:
             self.sensor.setup_from_data(inputs.sensor, inputs.range_m)
+            if hasattr(self.sensor, "setup_lines"):
+                self.sensor.setup_lines(inputs.n_lines)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # the warm-start angles steer the finder, so a resumed fit needs them to continue

@@ -89,6 +89,59 @@ def test_normal_sensor_model_mask_and_loss():
         sensor.loss(_geo(pred), torch.zeros(3))
 
 
+def test_line_offsets_absorb_a_per_line_side_bias_of_the_target():
+    """With offsets equal to a target's per-(line, side) bias, the loss is the unbiased
+    target's plus the prior; the offsets get gradients only where their bins are."""
+    torch.manual_seed(0)
+    n = 12
+    pred = (torch.rand(n) - 0.5) * 0.4
+    geo = _geo(pred)
+    geo.line = torch.arange(n) % 3
+    geo.side = (torch.arange(n) // 3) % 2
+    truth = pred + (torch.rand(n) - 0.5) * 0.05
+    bias = torch.tensor([[0.03, -0.02], [0.0, 0.05], [-0.04, 0.01]])
+    sensor = NormalSensorModel(line_offset=True, offset_weight=0.5)
+    with pytest.raises(RuntimeError, match="setup_lines"):
+        sensor.loss(geo, truth)
+    sensor.setup_lines(4)  # line 3 has no bins in the batch
+    assert sensor.line_offset.shape == (4, 2) and sensor.line_offset.requires_grad
+    with torch.no_grad():
+        sensor.line_offset[:3] = bias
+    loss, logs = sensor.loss(geo, truth + bias[geo.line, geo.side])
+    plain = normal_2d_loss(pred, torch.sqrt(1 - pred**2), truth)
+    prior = 0.5 * bias.pow(2).sum() / 8
+    assert loss.item() == pytest.approx(plain.item() + prior.item(), rel=1e-5)
+    assert logs["offset_rms"].item() == pytest.approx(math.sqrt(bias.pow(2).sum() / 8), rel=1e-5)
+    loss.backward()
+    grad = sensor.line_offset.grad
+    assert torch.all(grad[:3] != 0)
+    assert torch.all(grad[3] == 0)  # no bins, zero offset: the prior's gradient is 0 too
+    # the offsets off: the target is used as is, no parameter is trained
+    off = NormalSensorModel()
+    off.setup_lines(4)
+    assert off.line_offset.numel() == 0 and not off.line_offset.requires_grad
+    loss_off, logs_off = off.loss(geo, truth)
+    assert loss_off.item() == pytest.approx(plain.item()) and "offset_rms" not in logs_off
+    with pytest.raises(ValueError, match="offset_weight"):
+        NormalSensorModel(line_offset=True, offset_weight=-1.0)
+    with pytest.raises(ValueError, match="n_lines"):
+        sensor.setup_lines(0)
+
+
+def test_line_offsets_restore_from_a_state_dict_of_another_size():
+    sensor = NormalSensorModel(line_offset=True)
+    sensor.setup_lines(5)
+    with torch.no_grad():
+        sensor.line_offset.fill_(0.02)
+    fresh = NormalSensorModel(line_offset=True)
+    fresh.load_state_dict(sensor.state_dict())
+    assert fresh.line_offset.shape == (5, 2) and torch.allclose(
+        fresh.line_offset, torch.full((5, 2), 0.02)
+    )
+    fresh.setup_lines(5)  # the same size: kept, not zeroed
+    assert torch.allclose(fresh.offsets(), torch.full((5, 2), 0.02))
+
+
 def test_height_loss_alone_drives_a_siren_to_a_plane():
     torch.manual_seed(0)
     bounds, plane = (0.0, 0.0, 100.0, 80.0), (-18.0, 0.04, -0.03)

@@ -236,8 +236,9 @@ def test_cnn_experiment_composes_with_loss_override(loss):
         == [
             cfg.cnn_test_surveys.synthetic_d2.name,
             cfg.cnn_test_surveys.synthetic_d3.name,
+            cfg.cnn_test_surveys.synthetic_d1_site2.name,
         ]
-        == ["synthetic_d2_tiny", "synthetic_d3_tiny"]
+        == ["synthetic_d2_tiny", "synthetic_d3_tiny", "synthetic_d1_site2_tiny"]
     )
     assert cfg.data.survey.name not in {s.name for s in cfg.data.test_surveys}
     model = instantiate(cfg.model, _recursive_=True, _convert_="partial")

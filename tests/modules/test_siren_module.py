@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
 from sss2bathy.losses.siren import height_loss
 from sss2bathy.models.arc_fit import arc_geometry
+from sss2bathy.models.lambertian import LambertianSensorModel
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.siren import Siren
 from sss2bathy.modules.siren import SirenModule
@@ -154,7 +155,12 @@ def _fit_from_config(cfg):
 
 @pytest.mark.parametrize(
     "experiment, extra",
-    [("siren_gt_n2d", []), ("siren_direct_fit", []), ("siren_gt_n2d", ["model.sensor=null"])],
+    [
+        ("siren_gt_n2d", []),
+        ("siren_direct_fit", []),
+        ("siren_gt_n2d", ["model.sensor=null"]),
+        ("siren_gt_n2d", ["model.line_offset=true"]),
+    ],
 )
 def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extra):
     cfg = _compose(tmp_path, experiment, tiny_survey, extra)
@@ -163,13 +169,28 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
     trainer, model, dm = _fit_from_config(cfg)
     metrics = trainer.callback_metrics
     assert torch.isfinite(metrics["train/loss"])
-    if extra:  # heights only: no sidescan term
+    if "model.sensor=null" in extra:  # heights only: no sidescan term
         assert "train/loss_sensor" not in metrics
         assert metrics["train/loss"] == pytest.approx(float(metrics["train/loss_height"]))
     elif experiment == "siren_gt_n2d":
         assert metrics["train/valid_fraction"] > 0.5
         assert 0 < metrics["train/finder_iters"] <= 16
         assert torch.isfinite(model.theta_cache).sum() > 0
+        offsets = model.sensor.offsets()
+        if "model.line_offset=true" in extra:  # one learned offset per (line, side)
+            assert offsets.shape == (len(dm.line_names), 2)
+            assert torch.isfinite(offsets).all() and offsets.abs().sum() > 0
+            assert "train/sensor/offset_rms" in metrics
+            rows = (tmp_path / "run" / "line_offsets.csv").read_text().splitlines()
+            assert rows[0] == "line,side,offset" and len(rows) == 1 + 2 * len(dm.line_names)
+            assert rows[1] == f"{dm.line_names[0]},port,{float(offsets[0, 0]):.6f}"
+            final = json.loads((tmp_path / "run" / "metrics.json").read_text())
+            assert final["final/line_offset_rms"] == pytest.approx(
+                float(offsets.pow(2).mean().sqrt()), rel=1e-5
+            )
+        else:
+            assert offsets.numel() == 0 and "train/sensor/offset_rms" not in metrics
+            assert not (tmp_path / "run" / "line_offsets.csv").exists()
     else:
         assert torch.isfinite(metrics["train/loss_direct"])
     # the SIREN's frame comes from the datamodule (tracks and altimeter), not the grid
@@ -180,6 +201,22 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
     assert final["final/n_cells"] > 100 and np.isfinite(final["final/mae"])
     for name in ("map.tif", "map.npz", "map.png", "gradient_hsv.png", "error.png"):
         assert (run / name).is_file()
+
+
+def test_line_offsets_only_with_the_normal_sensor():
+    lambert = LambertianSensorModel()
+    with pytest.raises(ValueError, match="line_offset.*LambertianSensorModel"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=lambert, line_offset=True)
+    with pytest.raises(ValueError, match="line_offset"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, line_offset=True)
+    with pytest.raises(ValueError, match="offset_weight"):
+        SirenModule(
+            Siren(hidden=8, n_layers=3),
+            sensor=NormalSensorModel(),
+            line_offset=True,
+            line_offset_weight=-1.0,
+        )
+    SirenModule(Siren(hidden=8, n_layers=3), sensor=lambert)  # off: any sensor
 
 
 def test_cnn_experiment_config(tmp_path, tiny_survey):
