@@ -139,6 +139,23 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_weight=0,0.1 hydra.sweep.dir=$(TUNE)/field_weight $(ARGS)
 	$(BIN)/python -m sss2bathy.eval.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
+.PHONY: valsite-study
+VALSITE := outputs/valsite_study/$(SCALE)
+VALSITE_TRAIN := $(BIN)/sss2bathy-train data/survey=synthetic_d1_valsite scale=$(SCALE) torch_threads=1 model.log_images=false
+VALSITE_OLD_LR := scale.siren.lr=3.0e-3 scale.siren.gamma=0.8
+valsite-study: install ## SIREN settings on the validation site (d1's recipe, seed 7; not a test set): GT-N2d, CNN-N2d, Lambert at the scale's lr and 3e-3, CNN-N2d with line offsets; one fit at a time (~15 min demo) -> outputs/valsite_study/
+	@ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1 || \
+		$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
+	rm -rf $(VALSITE)
+	for e in gt_n2d cnn_n2d lambert; do \
+		$(VALSITE_TRAIN) experiment=siren_$$e hydra.run.dir=$(VALSITE)/$${e}_scale_lr $(ARGS) || exit 1; \
+		$(VALSITE_TRAIN) experiment=siren_$$e $(VALSITE_OLD_LR) hydra.run.dir=$(VALSITE)/$${e}_lr3e-3 $(ARGS) || exit 1; \
+	done
+	$(VALSITE_TRAIN) experiment=siren_cnn_n2d model.line_offset=true hydra.run.dir=$(VALSITE)/cnn_n2d_line_offset $(ARGS)
+	$(VALSITE_TRAIN) experiment=siren_cnn_n2d model.line_offset=true $(VALSITE_OLD_LR) \
+		hydra.run.dir=$(VALSITE)/cnn_n2d_line_offset_lr3e-3 $(ARGS)
+	$(BIN)/python -m sss2bathy.eval.valsite_study $(VALSITE)
+
 LC_N_TRAIN ?= 8,16,32
 .PHONY: learning-curve
 learning-curve: install ## CNN test MAE vs training lines / time, one survey, fixed test lines -> outputs/learning_curve/
