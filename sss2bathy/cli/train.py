@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from sss2bathy.cli._common import (
     apply_extras,
@@ -92,6 +92,22 @@ class Run:
     trainer: Any
 
 
+def _resolved(cfg: DictConfig, key: str) -> Any:
+    """``cfg[key]`` with every interpolation resolved into plain containers, still under
+    ``key`` (so constructor errors name the full config key); None stays None.
+
+    OmegaConf cannot resolve *in place* an interpolation to a survey preset whose keys fall
+    back to list literals (``${oc.select:key,[a, b]}``): the CNN's ``data.test_surveys``
+    entries at ``scale=paper`` (and the run hyper-parameters that copy them) failed with
+    "Value 'list' is not a supported primitive type". ``to_container(resolve=True)`` has no
+    such limit.
+    """
+    node = cfg.get(key)
+    if node is None:
+        return None
+    return OmegaConf.create({key: OmegaConf.to_container(node, resolve=True)})[key]
+
+
 def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
     """Datamodule, model, callbacks, loggers and trainer of ``cfg``, before any heavy work.
 
@@ -110,7 +126,7 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
     # Lightning (which also sets cuDNN and cuBLAS up for it)
     determinism = {"deterministic": "warn"} if cfg.get("deterministic") else {}
     datamodule = instantiate_group(
-        "data", lambda: hydra.utils.instantiate(cfg.data, _recursive_=False), cfg
+        "data", lambda: hydra.utils.instantiate(_resolved(cfg, "data"), _recursive_=False), cfg
     )
     model = instantiate_group(
         "model",
@@ -118,7 +134,7 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
         cfg,
     )
     callbacks = instantiate_group(
-        "callbacks", lambda: instantiate_callbacks(cfg.get("callbacks")), cfg
+        "callbacks", lambda: instantiate_callbacks(_resolved(cfg, "callbacks")), cfg
     )
     loggers = instantiate_group("logger", lambda: instantiate_loggers(cfg.get("logger")), cfg)
     from sss2bathy.callbacks import MetricCurve

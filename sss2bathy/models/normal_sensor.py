@@ -40,8 +40,9 @@ class NormalSensorModel(SensorModel):
         super().__init__()
         if not isinstance(line_offset, bool):
             raise ValueError(f"line_offset: expected true or false, found {line_offset!r}")
-        # (n_lines, 2): sized by setup_lines() (or by a loaded state dict)
-        self.line_offset = nn.Parameter(torch.zeros(0, 2), requires_grad=False)
+        # (n_lines, 2) when learned, sized by setup_lines() (or by a loaded state dict); off:
+        # no parameter at all, so checkpoints of fits without offsets keep their keys
+        self.register_parameter("line_offset", None)
         self.use_line_offset = False
         self.offset_weight = 0.0
         if line_offset:
@@ -60,7 +61,8 @@ class NormalSensorModel(SensorModel):
             )
         self.use_line_offset = True
         self.offset_weight = float(offset_weight)
-        self.line_offset.requires_grad_(True)
+        if self.line_offset is None:
+            self.line_offset = nn.Parameter(torch.zeros(0, 2))
 
     def setup_lines(self, n_lines: int) -> None:
         """Size the per-(line, side) offsets for ``n_lines`` lines (zeros); a no-op when the
@@ -73,10 +75,8 @@ class NormalSensorModel(SensorModel):
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
         saved = state_dict.get(prefix + "line_offset")
-        if saved is not None and saved.shape != self.line_offset.shape:
-            self.line_offset = nn.Parameter(
-                torch.zeros_like(saved), requires_grad=self.use_line_offset
-            )
+        if saved is not None and self.use_line_offset and saved.shape != self.line_offset.shape:
+            self.line_offset = nn.Parameter(torch.zeros_like(saved))
         super()._load_from_state_dict(state_dict, prefix, *args)
 
     def bin_mask(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -114,5 +114,7 @@ class NormalSensorModel(SensorModel):
         return loss, logs
 
     def offsets(self) -> torch.Tensor:
-        """``(n_lines, 2)`` learned offsets (port, starboard); empty when off."""
+        """``(n_lines, 2)`` learned offsets (port, starboard); ``(0, 2)`` when off."""
+        if self.line_offset is None:
+            return torch.zeros(0, 2)
         return self.line_offset.detach().clone()

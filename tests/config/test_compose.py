@@ -85,6 +85,21 @@ def test_experiment_composes_and_validates(experiment, scale):
     validate_config(cfg)
 
 
+@pytest.mark.parametrize("scale", SCALES)
+def test_cnn_experiment_instantiates_at_every_scale(scale):
+    """The CNN's test surveys are interpolations to survey presets whose keys fall back to
+    list literals at scale=paper; instantiating the run failed there until the data and
+    callback nodes were resolved into plain containers first (sss2bathy/cli/train.py)."""
+    cfg = copy.deepcopy(_composed("experiment=cnn", f"scale={scale}"))
+    _startup(cfg)
+    names = [s.name for s in cfg.data.test_surveys]
+    assert names == [
+        f"synthetic_d2_{scale}",
+        f"synthetic_d3_{scale}",
+        f"synthetic_d1_site2_{scale}",
+    ]
+
+
 @pytest.mark.parametrize("config_name", ["prepare", "eval", "predict"])
 def test_other_entry_configs_compose(config_name):
     cfg = _compose(config_name, ["scale=tiny"])

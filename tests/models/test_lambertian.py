@@ -604,7 +604,7 @@ def test_model_swap_changes_only_the_sensor():
     assert diff and all(k.startswith("model.sensor.") for k in diff), sorted(diff)
     assert lambert.model.sensor._target_.endswith("LambertianSensorModel")
     assert lambert.model.sensor.shadow_threshold == pytest.approx(0.3)
-    assert (lambert.model.sensor.q, lambert.model.sensor.reflectivity) == (6.0, "field")
+    assert (lambert.model.sensor.q, lambert.model.sensor.reflectivity) == (2.0, "field")
 
 
 @pytest.mark.parametrize(
