@@ -143,7 +143,7 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 VALSITE := outputs/valsite_study/$(SCALE)
 VALSITE_TRAIN := $(BIN)/sss2bathy-train data/survey=synthetic_d1_valsite scale=$(SCALE) torch_threads=1 model.log_images=false
 VALSITE_OLD_LR := scale.siren.lr=3.0e-3 scale.siren.gamma=0.8
-valsite-study: install ## SIREN settings on the validation site (d1's recipe, seed 7; not a test set): GT-N2d, CNN-N2d, Lambert at the scale's lr and 3e-3, CNN-N2d with line offsets; one fit at a time (~15 min demo) -> outputs/valsite_study/
+valsite-study: install ## SIREN settings on the validation site (d1's recipe, seed 7; not a test set): GT-N2d, CNN-N2d, Lambert at the scale's lr and 3e-3, CNN-N2d with line offsets; one fit at a time (~9 min demo) -> outputs/valsite_study/
 	@ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1 || \
 		$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
 	rm -rf $(VALSITE)
