@@ -204,6 +204,8 @@ def describe_fit(
         "sensor": type(sensor).__name__ if sensor is not None else "none",
         "w_height": w_height,
     }
+    if getattr(sensor, "use_line_offset", False):  # the normal sensor's learned line offsets
+        flat["sensor/line_offset_weight"] = float(sensor.offset_weight)
     settings = dataclasses.asdict(finder) if dataclasses.is_dataclass(finder) else dict(finder)
     flat.update({f"finder/{k}": str(v) if v is None else v for k, v in settings.items()})
     return flat

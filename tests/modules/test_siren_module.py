@@ -181,6 +181,7 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
             assert offsets.shape == (len(dm.line_names), 2)
             assert torch.isfinite(offsets).all() and offsets.abs().sum() > 0
             assert "train/sensor/offset_rms" in metrics
+            assert model.hparams_for_log()["sensor/line_offset_weight"] == 1.0
             rows = (tmp_path / "run" / "line_offsets.csv").read_text().splitlines()
             assert rows[0] == "line,side,offset" and len(rows) == 1 + 2 * len(dm.line_names)
             assert rows[1] == f"{dm.line_names[0]},port,{float(offsets[0, 0]):.6f}"
@@ -190,6 +191,7 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
             )
         else:
             assert offsets.numel() == 0 and "train/sensor/offset_rms" not in metrics
+            assert "sensor/line_offset_weight" not in model.hparams_for_log()
             assert not (tmp_path / "run" / "line_offsets.csv").exists()
     else:
         assert torch.isfinite(metrics["train/loss_direct"])
