@@ -241,6 +241,12 @@ def write_line_offsets(offsets: np.ndarray, line_names: Sequence[str], out_dir: 
     """``line_offsets.csv``: the n_lat offset a SIREN-N2d fit learned for each line and side
     (``line_offset=true``; what it subtracted from the target normals)."""
     if len(line_names) != offsets.shape[0]:
+        log.warning(
+            "line_offsets.csv: expected %d line names (the datamodule's line_names), found %d; "
+            "lines are labelled by their index",
+            offsets.shape[0],
+            len(line_names),
+        )
         line_names = [str(i) for i in range(offsets.shape[0])]
     rows = ["line,side,offset"]
     for name, pair in zip(line_names, offsets, strict=True):
