@@ -23,7 +23,7 @@ import csv
 import io
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +96,57 @@ def find_runs(root: str | Path) -> list[RunRecord]:
     return runs
 
 
+def score_run_folder(
+    root: str | Path,
+    kind: str,
+    settings_of: Callable[[RunRecord], dict[str, Any]],
+    check_survey: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Every finished run below ``root`` scored alike: one row per run, in path order, of
+    ``settings_of(run)`` (which may refuse the run by raising), the run's :data:`METRICS` on
+    the cells every run scored (:func:`sss2bathy.eval.report.score_maps`) against the
+    survey's MBES grid, and ``run`` (its folder below ``root``). ``kind`` names the runs in
+    errors; ``check_survey(survey_name)`` may refuse the survey. Settings and the survey are
+    checked before any map is read.
+
+    Raises:
+        FileNotFoundError: no finished run, or its survey's MBES grid is missing.
+        ValueError: a refused run or survey, runs of different surveys, or a map off the
+            MBES grid.
+    """
+    root = Path(root)
+    runs = find_runs(root)
+    if not runs:
+        raise FileNotFoundError(f"{root}: expected finished {kind} runs (map.npz), found none")
+    settings = {str(r.path.relative_to(root)): settings_of(r) for r in runs}
+    surveys = {(r.info.get("data_dir"), r.info.get("survey_name")) for r in runs}
+    if len(surveys) != 1:
+        raise ValueError(f"{root}: expected runs of one survey, found {sorted(map(str, surveys))}")
+    name = str(runs[0].info.get("survey_name"))
+    if check_survey is not None:
+        try:
+            check_survey(name)
+        except ValueError as err:
+            raise ValueError(f"{root}: {err}") from None
+    truth = _mbes_grid(runs[0])
+    if truth is None:
+        raise FileNotFoundError(
+            f"{runs[0].path}: expected the MBES grid of survey {name!r} under data_dir "
+            f"{runs[0].info.get('data_dir')!r}, found none"
+        )
+    maps = []
+    for label, run in zip(settings, runs, strict=True):
+        loaded = load_map_run(label, run, truth)
+        if loaded is None:
+            raise ValueError(f"{run.path}/map.npz: expected a map on the MBES grid, found another")
+        maps.append(loaded)
+    scores, _ = score_maps(maps, truth)
+    return [
+        {**settings[label], **{m: scores[label][m] for m in METRICS}, "run": label}
+        for label in settings
+    ]
+
+
 def tune_table(root: str | Path) -> list[dict[str, Any]]:
     """One row per run below ``root``: its settings, metrics on the common cells, folder.
 
@@ -106,34 +157,14 @@ def tune_table(root: str | Path) -> list[dict[str, Any]]:
         ValueError: a run on other than the training lines, runs of different surveys, or
             a map off the MBES grid.
     """
-    runs = find_runs(root)
-    if not runs:
-        raise FileNotFoundError(
-            f"{root}: expected finished lambert_tune runs (map.npz), found none"
-        )
-    surveys = {(r.info.get("data_dir"), r.info.get("survey_name")) for r in runs}
-    if len(surveys) != 1:
-        raise ValueError(f"{root}: expected runs of one survey, found {sorted(map(str, surveys))}")
-    truth = _mbes_grid(runs[0])
-    if truth is None:
-        raise FileNotFoundError(
-            f"{runs[0].path}: expected the MBES grid of survey {runs[0].info.get('survey_name')!r} "
-            f"under data_dir {runs[0].info.get('data_dir')!r}, found none"
-        )
-    settings, maps = {}, []
-    for run in runs:
-        label = str(run.path.relative_to(root))
-        settings[label] = run_settings(run.info["config"], where=str(run.path))
-        loaded = load_map_run(label, run, truth)
-        if loaded is None:
-            raise ValueError(f"{run.path}/map.npz: expected a map on the MBES grid, found another")
-        maps.append(loaded)
-    scores, _ = score_maps(maps, truth)
-    rows = [{**settings[k], **{m: scores[k][m] for m in METRICS}, "run": k} for k in scores]
+    rows = score_run_folder(
+        root, "lambert_tune", lambda run: run_settings(run.info["config"], where=str(run.path))
+    )
     return sorted(rows, key=lambda r: r["mae"])
 
 
-def _fmt(value: Any) -> str:
+def fmt_cell(value: Any) -> str:
+    """A table cell: floats to 3 significant digits, anything else as text."""
     return f"{value:.3g}" if isinstance(value, float) else str(value)
 
 
@@ -151,7 +182,7 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN-Lambert tuning")
         "|" + "---|" * len(columns) + "---:|---:|---:|---:|---|",
     ]
     for r in rows:
-        cells = [_fmt(r[c]) for c in columns]
+        cells = [fmt_cell(r[c]) for c in columns]
         cells += [f"{r['mae']:.3f}", f"{r['std']:.3f}", f"{r['grad_cs']:.3f}", str(r["n_cells"])]
         md.append("| " + " | ".join([*cells, r["run"]]) + " |")
     return "\n".join(md) + "\n"

@@ -4,10 +4,9 @@ scored alike.
 ``make valsite-study`` fits SIREN-GT-N2d, SIREN-CNN-N2d and SIREN-Lambert on
 ``data/survey=synthetic_d1_valsite`` (d1's recipe on another seabed, flown like d1's test
 lines; neither training nor test data) at a few SIREN settings, one run per folder. This
-module finds the finished runs (``map.npz``, ``run_info.json``, ``.hydra/config.yaml``:
-:func:`sss2bathy.eval.lambert_tune.find_runs`), reads each run's variant and settings from
-its config, scores every map on the **same cells** (the intersection of the runs' scored
-areas, :func:`sss2bathy.eval.report.score_maps`) against the site's MBES grid, and writes
+module reads each finished run's variant and settings from its config and scores every map
+on the **same cells** against the site's MBES grid (the lambert_tune table's reader,
+:func:`sss2bathy.eval.lambert_tune.score_run_folder`), and writes
 ``valsite_study.md`` and ``valsite_study.csv``, grouped by variant, best MAE first.
 
 Runs of more than one survey, or of a survey that is not a validation site (its name must
@@ -29,8 +28,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from sss2bathy.eval.lambert_tune import find_runs
-from sss2bathy.eval.report import _mbes_grid, load_map_run, score_maps
+from sss2bathy.eval.lambert_tune import METRICS, fmt_cell, score_run_folder
+from sss2bathy.eval.report import RunRecord
 from sss2bathy.utils.atomic import atomic_write_text
 
 log = logging.getLogger("sss2bathy.valsite_study")
@@ -44,7 +43,6 @@ SETTINGS = (
     ("epochs", "trainer.max_epochs"),
     ("line_offset", "model.line_offset"),
 )
-METRICS = ("mae", "std", "grad_cs", "n_cells")
 
 
 def run_settings(config: Mapping[str, Any], where: str = "config") -> dict[str, Any]:
@@ -63,58 +61,33 @@ def run_settings(config: Mapping[str, Any], where: str = "config") -> dict[str, 
     return out
 
 
+def _check_site(name: str) -> None:
+    if SITE_MARK not in name:
+        raise ValueError(
+            f"survey_name: expected a validation site (a name with {SITE_MARK!r}, "
+            f"e.g. data/survey=synthetic_d1_valsite), found {name!r}"
+        )
+
+
 def study_table(root: str | Path) -> list[dict[str, Any]]:
     """One row per run below ``root``: its settings, its held-out altimeter MAE, the metrics
-    on the common cells and its folder; grouped by variant, best MAE first.
+    on the common cells (:func:`sss2bathy.eval.lambert_tune.score_run_folder`) and its
+    folder; grouped by variant, best MAE first.
 
     Raises:
         FileNotFoundError: no finished run, or the site's MBES grid is missing.
         ValueError: runs of several surveys or of one that is not a validation site, or a
             map off the MBES grid.
     """
-    root = Path(root)
-    runs = find_runs(root)
-    if not runs:
-        raise FileNotFoundError(f"{root}: expected finished SIREN runs (map.npz), found none")
-    surveys = {(r.info.get("data_dir"), r.info.get("survey_name")) for r in runs}
-    if len(surveys) != 1:
-        raise ValueError(f"{root}: expected runs of one survey, found {sorted(map(str, surveys))}")
-    name = str(runs[0].info.get("survey_name"))
-    if SITE_MARK not in name:
-        raise ValueError(
-            f"{root}: survey_name: expected a validation site (a name with {SITE_MARK!r}, "
-            f"e.g. data/survey=synthetic_d1_valsite), found {name!r}"
-        )
-    truth = _mbes_grid(runs[0])
-    if truth is None:
-        raise FileNotFoundError(
-            f"{runs[0].path}: expected the MBES grid of survey {name!r} under data_dir "
-            f"{runs[0].info.get('data_dir')!r}, found none"
-        )
-    settings, holdout, maps = {}, {}, []
-    for run in runs:
-        label = str(run.path.relative_to(root))
-        settings[label] = run_settings(run.info["config"], where=str(run.path))
-        holdout[label] = run.metrics.get("final/holdout_alt_mae", float("nan"))
-        loaded = load_map_run(label, run, truth)
-        if loaded is None:
-            raise ValueError(f"{run.path}/map.npz: expected a map on the MBES grid, found another")
-        maps.append(loaded)
-    scores, _ = score_maps(maps, truth)
-    rows = [
-        {
-            **settings[k],
-            **{m: scores[k][m] for m in METRICS},
-            "holdout_alt_mae": holdout[k],
-            "run": k,
+
+    def settings_of(run: RunRecord) -> dict[str, Any]:
+        return {
+            **run_settings(run.info["config"], where=str(run.path)),
+            "holdout_alt_mae": run.metrics.get("final/holdout_alt_mae", float("nan")),
         }
-        for k in scores
-    ]
+
+    rows = score_run_folder(root, "SIREN", settings_of, _check_site)
     return sorted(rows, key=lambda r: (str(r["variant"]), r["mae"]))
-
-
-def _fmt(value: Any) -> str:
-    return f"{value:.3g}" if isinstance(value, float) else str(value)
 
 
 def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, validation site") -> str:
@@ -134,7 +107,7 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, valida
         "|" + "---|" * len(columns) + "---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
-        cells = [_fmt(r[c]) for c in columns]
+        cells = [fmt_cell(r[c]) for c in columns]
         cells += [f"{r['mae']:.3f}", f"{r['std']:.3f}", f"{r['grad_cs']:.3f}"]
         cells += [f"{r['holdout_alt_mae']:.3f}", str(r["n_cells"])]
         md.append("| " + " | ".join([*cells, r["run"]]) + " |")
