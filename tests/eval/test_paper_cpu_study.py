@@ -12,6 +12,7 @@ import pytest
 from sss2bathy.eval.paper_cpu_study import (
     fit_command,
     mae_at,
+    parse_reference,
     prepare_commands,
     run_study,
     survey_status,
@@ -63,6 +64,61 @@ def test_time_to_quality_refuses_bad_arguments():
         time_to_quality({("siren_gt_n2d", "fast"): _curve([1], [1])}, 60, within=1.5)
     with pytest.raises(ValueError, match="expected at least one evaluation"):
         time_to_quality({("siren_gt_n2d", "fast"): _curve([], [])}, 60)
+
+
+def test_a_longer_reference_sets_the_best_and_keeps_its_own_budget():
+    curves = {
+        ("siren_gt_n2d", "fast"): _curve([300, 600, 1200], [0.20, 0.12, 0.10]),
+        ("siren_gt_n2d", "fast x2"): _curve([600, 1200, 2400, 3600], [0.15, 0.11, 0.095, 0.092]),
+    }
+    rows = time_to_quality(
+        curves, 1200, marks_min=(20, 60), budgets={("siren_gt_n2d", "fast x2"): 3600}
+    )
+    fast, ref = rows
+    assert fast["method_best_mae"] == ref["method_best_mae"] == 0.092  # the reference's best
+    assert fast["t_within_s"] == 1200  # 0.10 <= 1.1 * 0.092; 0.12 is not
+    assert fast["mae_20min"] == 0.10 and math.isnan(fast["mae_60min"])  # beyond its budget
+    assert ref["mae_20min"] == 0.11 and ref["mae_60min"] == 0.092
+    assert ref["t_within_s"] == 2400
+    with pytest.raises(ValueError, match=r"budgets\[\('siren_gt_n2d', 'fast x2'\)\]"):
+        time_to_quality(curves, 1200, budgets={("siren_gt_n2d", "fast x2"): 0})
+
+
+def _write_run(run_dir, wall, mae):
+    run_dir.mkdir(parents=True)
+    lines = ["epoch,step,wall_s,train_s,lr,val/map_mae_m"]
+    lines += [
+        f"{i},{10 * (i + 1)},{w},{w},1e-4,{m}"
+        for i, (w, m) in enumerate(zip(wall, mae, strict=True))
+    ]
+    (run_dir / "metric_curve.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_tabulate_only_reads_existing_runs_and_references(tmp_path):
+    out = tmp_path / "out"
+    _write_run(out / "runs" / "siren_gt_n2d_fast", [300, 600, 1200], [0.2, 0.12, 0.10])
+    _write_run(tmp_path / "ref", [600, 3600], [0.15, 0.09])
+    key, ref_dir = parse_reference(f"siren_gt_n2d:fast x2={tmp_path / 'ref'}")
+    assert key == ("siren_gt_n2d", "fast x2")
+    rows = run_study(
+        out, scale="tiny", budget_min=20, data_dir=tmp_path / "data", marks_min=(20,),
+        references={key: ref_dir}, tabulate_only=True,
+    )  # fmt: skip
+    # nothing was prepared or fitted: only the run that exists and the reference
+    assert [(r["schedule"], r["method_best_mae"]) for r in rows] == [
+        ("fast", 0.09),
+        ("fast x2", 0.09),
+    ]
+    assert rows[0]["run"] == "runs/siren_gt_n2d_fast" and rows[1]["run"] == str(ref_dir)
+    assert not (tmp_path / "data").exists()
+    assert "fast x2" in (out / "paper_cpu_study.md").read_text()
+    for bad, match in (
+        ("siren_gt_n2d=x", "METHOD:LABEL=RUN_DIR"),
+        ("nope:x=" + str(tmp_path), "expected a method"),
+        (f"siren_gt_n2d:x={tmp_path / 'missing'}", "found no folder"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            parse_reference(bad)
 
 
 def test_markdown_and_csv_tables():
