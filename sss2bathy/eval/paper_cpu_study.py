@@ -242,9 +242,14 @@ def curve_figure(
     fig, axes = plt.subplots(1, max(len(methods), 1), figsize=(5.5 * len(methods), 4))
     axes = np.atleast_1d(axes)
     for ax, method in zip(axes, methods, strict=True):
+        best = min(float(np.min(c[KEY])) for (m, _), c in curves.items() if m == method)
         for (m, schedule), c in curves.items():
             if m == method:
                 ax.plot(np.asarray(c[CLOCK]) / 60, c[KEY], marker="o", ms=3, label=schedule)
+        ax.axhline(
+            (1 + WITHIN) * best, color="0.4", ls="--", lw=1,
+            label=f"{1 + WITHIN:g} x best ({(1 + WITHIN) * best:.3f} m)",
+        )  # fmt: skip
         ax.set_yscale("log")
         ax.set_xlabel("fit wall time (min)")
         ax.set_ylabel("map MAE (m)")
