@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sss2bathy.eval.paper_cpu_study import (
+    DEFAULT_METHODS,
     fit_command,
     mae_at,
     parse_reference,
@@ -146,6 +147,10 @@ def test_commands(tmp_path):
         fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
     with pytest.raises(ValueError, match="method: expected one of"):
         fit_command("cnn", "fast", "paper", tmp_path, tmp_path, 60)
+    # the altimeter-only baseline can be asked for; the default study runs GT-N2d and Lambert
+    base = fit_command("siren_heights_only", "fast", "paper", tmp_path, tmp_path, 60)
+    assert "experiment=siren_heights_only" in base
+    assert DEFAULT_METHODS == ("siren_gt_n2d", "siren_lambert")
     assert not any("EarlyStopping" in c for c in cmd)  # the stop lever is off by default
     stop = fit_command("siren_gt_n2d", "fast", "paper", tmp_path, tmp_path, 60, holdout_stop=3)
     assert "model.select_best=holdout_alt_mae" in stop
