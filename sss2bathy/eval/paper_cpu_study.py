@@ -606,6 +606,8 @@ def main(argv: list[str] | None = None) -> int:
             key, run_dir = parse_reference(text)
         except ValueError as err:
             p.error(str(err))
+        if key in references:
+            p.error(f"--reference {text!r}: {key[0]}:{key[1]} is given twice")
         references[key] = run_dir
     data_dir = Path(args.data_dir) if args.data_dir else ROOT / "data"
     if args.dry_run:

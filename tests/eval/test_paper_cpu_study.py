@@ -13,6 +13,7 @@ from sss2bathy.eval.paper_cpu_study import (
     DEFAULT_METHODS,
     fit_command,
     mae_at,
+    main,
     parse_reference,
     prepare_commands,
     run_study,
@@ -120,6 +121,10 @@ def test_tabulate_only_reads_existing_runs_and_references(tmp_path):
     ):
         with pytest.raises(ValueError, match=match):
             parse_reference(bad)
+    twice = ["--reference", f"siren_gt_n2d:x={tmp_path / 'ref'}"] * 2
+    with pytest.raises(SystemExit) as err:
+        main(["--tabulate", "--out", str(out), *twice])
+    assert err.value.code == 2
 
 
 def test_markdown_and_csv_tables():
