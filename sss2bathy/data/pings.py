@@ -17,7 +17,14 @@ Batch keys (``P`` pings, ``B`` bins per side, ``A`` altimeter points):
 ``ping``       ``(P,)`` long     ping index within its line
 ``index``      ``(P,)`` long     global ping index in the table (per-ping caches)
 ``altimeter``  ``(A, 3)`` f32    seafloor points below the vehicle (m)
+``keep``       ``(P, 2, B)`` bool the bins drawn for this step (only with ``bin_fraction < 1``)
 =============  ================  ===========================================================
+
+``bin_fraction < 1`` draws, for every batch, each bin with that probability (``keep``): a
+step then costs about that fraction of a whole-ping step, so more pings fit in the same
+time. Neighbouring bins of a ping sample nearly the same seabed (512 bins over 50 m at the
+paper's scale), so a batch of many pings with a fraction of their bins spreads one step's
+cost over more of the survey (README → Performance, "Bins per step").
 
 Normals and masks (``normals``):
 
@@ -271,7 +278,8 @@ class PingBatches(Dataset):
     The order is a permutation of all pings drawn from ``(seed, epoch)`` (several chained
     permutations when ``n_batches * batch_pings`` exceeds the pings: without replacement
     within each); the altimeter points are drawn with replacement from
-    ``(seed, epoch, k)``.
+    ``(seed, epoch, k)``; with ``bin_fraction < 1`` the batch's ``keep`` bins are drawn
+    from ``(seed, 2, epoch, k)``, each with probability ``bin_fraction``.
     """
 
     def __init__(
@@ -283,8 +291,10 @@ class PingBatches(Dataset):
         n_batches: int,
         seed: int,
         whole_epochs: bool,
+        bin_fraction: float = 1.0,
     ) -> None:
         self.table, self.altimeter = table, altimeter
+        self.bin_fraction = float(bin_fraction)
         self.batch_pings, self.altimeter_points = batch_pings, altimeter_points
         self.n_batches, self.seed, self.whole_epochs = n_batches, seed, whole_epochs
         self._order: tuple[int, torch.Tensor] | None = None
@@ -312,6 +322,10 @@ class PingBatches(Dataset):
         gen = torch.Generator().manual_seed(derived_seed(self.seed, 1, epoch, k))
         pick = torch.randint(self.altimeter.shape[0], (self.altimeter_points,), generator=gen)
         batch["altimeter"] = self.altimeter[pick.to(self.altimeter.device)]
+        if self.bin_fraction < 1.0:
+            gen = torch.Generator().manual_seed(derived_seed(self.seed, 2, epoch, k))
+            keep = torch.rand(tuple(batch["mask"].shape), generator=gen) < self.bin_fraction
+            batch["keep"] = keep.to(batch["mask"].device)
         return batch
 
 
@@ -390,6 +404,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             replacement.
         steps_per_epoch: batches per epoch; ``None`` = ``ceil(pings / batch_pings)`` (every
             ping once).
+        bin_fraction: the fraction of each batch's bins a step uses, drawn at random per
+            batch (batch key ``keep``), in (0, 1]; 1 = every bin (the paper).
         seed: seed of the ping order and of the altimeter draws.
         device_resident: keep the table on the trainer's device (no per-step copies).
         drape: draping config (:class:`~sss2bathy.draping.DrapeConfig` fields) or ``None``.
@@ -426,6 +442,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         holdout: Mapping[str, Any] | None = None,
         cnn_precision: str = "fp32",
         cnn_overlap: float | None = None,
+        bin_fraction: float = 1.0,
     ) -> None:
         super().__init__()
         if normals not in NORMAL_SOURCES:
@@ -444,6 +461,9 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         window = check_window(window)
         check_precision(cnn_precision, "cnn_precision")
         cnn_overlap = check_overlap(cnn_overlap, "cnn_overlap")
+        require_number(
+            "bin_fraction", bin_fraction, lambda v: 0 < v <= 1, "a fraction in (0, 1]"
+        )
         if steps_per_epoch is not None and int(steps_per_epoch) < 1:
             raise ValueError(f"steps_per_epoch: expected None or >= 1, found {steps_per_epoch}")
         self.survey_cfg = survey
@@ -461,6 +481,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.batch_pings = int(batch_pings)
         self.altimeter_points = int(altimeter_points)
         self.steps_per_epoch = None if steps_per_epoch is None else int(steps_per_epoch)
+        self.bin_fraction = float(bin_fraction)
         self.seed = int(seed)
         self.device_resident = bool(device_resident)
         self.drape = drape
@@ -617,6 +638,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             steps,
             self.seed,
             whole_epochs=self.steps_per_epoch is None,
+            bin_fraction=self.bin_fraction,
         )
         # batch_size=None: each key is a whole batch; the loader's own generator keeps the
         # global RNG untouched when an epoch's iterator is created

@@ -241,6 +241,8 @@ class SirenModule(pl.LightningModule):
         and their targets."""
         cache = self.theta_cache if self.theta_cache.numel() else None
         use = self.sensor.bin_mask(batch)
+        if "keep" in batch:  # the bins drawn for this step (data.bin_fraction < 1)
+            use = use & batch["keep"]
         geo, stats = arc_geometry(self.siren, batch, use, self.theta_limits, self.finder, cache)
         return geo, batch[self.sensor.target_key][geo.ping, geo.side, geo.bin], stats
 

@@ -151,6 +151,7 @@ BAD_VALUES = [
     (("experiment=siren_gt_n2d",), "data.normals", "mbes"),
     (("experiment=siren_gt_n2d",), "data.need_intensity", "3"),
     (("experiment=siren_gt_n2d",), "data.steps_per_epoch", "0"),
+    (("experiment=siren_gt_n2d",), "data.bin_fraction", "0"),
     (("experiment=siren_gt_n2d",), "data.z_margin", "-0.5"),
     (("experiment=siren_gt_n2d",), "data.z_margin_m", "-1.0"),
     (("experiment=siren_gt_n2d",), "data.window.window_pings", "0"),

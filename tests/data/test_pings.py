@@ -171,9 +171,29 @@ def test_steps_per_epoch_and_validation(tiny_survey):
     assert len(list(dm.val_dataloader())) == 1
 
 
+def test_bin_fraction_draws_reproducible_bins_per_batch(tiny_survey):
+    whole = _dm(tiny_survey, normals="gt", steps_per_epoch=4, batch_pings=32)
+    whole.setup("fit")
+    assert all("keep" not in b for b in whole.train_dataloader())
+    dm = _dm(tiny_survey, normals="gt", steps_per_epoch=4, batch_pings=32, bin_fraction=0.25)
+    dm.setup("fit")
+    first = list(dm.train_dataloader())
+    kept = torch.stack([b["keep"] for b in first])
+    assert kept.dtype == torch.bool and kept.shape == (4, 32, 2, 32)
+    assert 0.2 < kept.float().mean() < 0.3  # 8192 draws at p = 0.25
+    assert not kept[0].equal(kept[1])  # a new draw every batch
+    # the same keys give the same bins (a resumed run sees what the uninterrupted one saw)
+    again = _dm(tiny_survey, normals="gt", steps_per_epoch=4, batch_pings=32, bin_fraction=0.25)
+    again.setup("fit")
+    for a, b in zip(first, again.train_dataloader(), strict=True):
+        assert a["keep"].equal(b["keep"]) and a["index"].equal(b["index"])
+
+
 @pytest.mark.parametrize(
     "kw, message",
     [
+        ({"bin_fraction": 0.0}, "bin_fraction: expected a fraction in (0, 1], found 0.0"),
+        ({"bin_fraction": 1.5}, "bin_fraction: expected a fraction in (0, 1], found 1.5"),
         ({"batch_pings": 0}, "batch_pings: expected a positive integer, found 0"),
         ({"altimeter_points": 2.5}, "altimeter_points: expected a positive integer, found 2.5"),
         ({"need_intensity": 3}, "need_intensity: expected true or false, found 3"),

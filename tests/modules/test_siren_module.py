@@ -160,6 +160,7 @@ def _fit_from_config(cfg):
         ("siren_direct_fit", []),
         ("siren_gt_n2d", ["model.sensor=null"]),
         ("siren_gt_n2d", ["model.line_offset=true"]),
+        ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
     ],
 )
 def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extra):
@@ -176,6 +177,14 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
         assert metrics["train/valid_fraction"] > 0.5
         assert 0 < metrics["train/finder_iters"] <= 16
         assert torch.isfinite(model.theta_cache).sum() > 0
+        if "data.bin_fraction=0.25" in extra:  # a step uses only the batch's drawn bins
+            batch = next(iter(dm.train_dataloader()))
+            with torch.no_grad():
+                geo, _, _ = model.sidescan_geometry(batch)
+                assert geo.ping.numel() > 0 and batch["keep"][geo.ping, geo.side, geo.bin].all()
+                whole = {k: v for k, v in batch.items() if k != "keep"}
+                n_whole = model.sidescan_geometry(whole)[0].ping.numel()
+            assert geo.ping.numel() < 0.4 * n_whole
         offsets = model.sensor.offsets()
         if "model.line_offset=true" in extra:  # one learned offset per (line, side)
             assert offsets.shape == (len(dm.line_names), 2)
