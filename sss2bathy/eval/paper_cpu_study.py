@@ -6,7 +6,8 @@
    survey is reused (same config hash; :func:`survey_status` says beforehand, a dry compose).
 2. :func:`fit_command` fits SIREN-GT-N2d and SIREN-Lambert with ``sss2bathy-train`` (one
    process, one fit at a time) at the paper schedule and at the project's fast schedule
-   (``siren_schedule=paper|fast``), each for at most ``budget`` seconds of fitting
+   (``siren_schedule=paper|fast``; ``budget``, the fast schedule's decay spread over the
+   budget, on request), each for at most ``budget`` seconds of fitting
    (Lightning's ``trainer.max_time``), evaluating the map ``evals_per_epoch`` times an
    epoch (``trainer.val_check_interval``); ``metric_curve.csv`` of each run holds the map
    MAE against the fit's wall seconds (:mod:`sss2bathy.eval.metric_curve`).
@@ -59,7 +60,10 @@ METHODS: dict[str, str] = {
 }
 #: run unless ``--methods`` says otherwise
 DEFAULT_METHODS = ("siren_gt_n2d", "siren_lambert")
-SCHEDULES = ("paper", "fast")
+#: budget = the fast schedule's decay spread over the time budget (conf/siren_schedule/budget.yaml)
+SCHEDULES = ("paper", "fast", "budget")
+#: run unless ``--schedules`` says otherwise
+DEFAULT_SCHEDULES = ("paper", "fast")
 KEY = "val/map_mae_m"
 CLOCK = "wall_s"
 #: "within 10 % of the best MAE"
@@ -367,6 +371,8 @@ def fit_command(
         "model.eval_every_n_epochs=1",
         f"++trainer.val_check_interval={1.0 / evals_per_epoch:.6g}",
         f"++trainer.max_time={{seconds:{max(int(round(budget_s)), 1)}}}",
+        # siren_schedule=budget spreads its learning-rate decay over the same seconds
+        *([f"scale.siren.budget_s={max(int(round(budget_s)), 1)}"] if schedule == "budget" else []),
         # Lightning ignores a stop request (the time limit) until min_epochs are done: an
         # epoch of a paper-scale survey can outlast the budget
         "++trainer.min_epochs=0",
@@ -469,7 +475,7 @@ def run_study(
     budget_min: float = 20.0,
     data_dir: str | Path | None = None,
     methods: Sequence[str] = DEFAULT_METHODS,
-    schedules: Sequence[str] = SCHEDULES,
+    schedules: Sequence[str] = DEFAULT_SCHEDULES,
     evals_per_epoch: int = 4,
     threads: int | None = None,
     seed: int = 42,
@@ -566,7 +572,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-min", type=float, default=20.0, help="fitting minutes per run")
     p.add_argument("--data-dir", default=None, help="survey folders (default: <root>/data)")
     p.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
-    p.add_argument("--schedules", nargs="+", default=list(SCHEDULES), choices=list(SCHEDULES))
+    p.add_argument(
+        "--schedules", nargs="+", default=list(DEFAULT_SCHEDULES), choices=list(SCHEDULES)
+    )
     p.add_argument("--evals-per-epoch", type=int, default=4)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--seed", type=int, default=42)

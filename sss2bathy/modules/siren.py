@@ -227,7 +227,10 @@ class SirenModule(pl.LightningModule):
         if self.scheduler_factory is None:
             return {"optimizer": opt}
         sched = self.scheduler_factory(optimizer=opt)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+        # per epoch (torch's schedulers), unless the scheduler says otherwise (the wall-clock
+        # decay of siren_schedule=budget steps every optimiser step)
+        interval = getattr(sched, "interval", "epoch")
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": interval}}
 
     def configure_callbacks(self) -> list[Callback]:
         export = SirenMapExport(self.output_dir)

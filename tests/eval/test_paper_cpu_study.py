@@ -11,6 +11,7 @@ import pytest
 
 from sss2bathy.eval.paper_cpu_study import (
     DEFAULT_METHODS,
+    DEFAULT_SCHEDULES,
     fit_command,
     mae_at,
     main,
@@ -148,6 +149,12 @@ def test_commands(tmp_path):
     assert "++trainer.max_time={seconds:1200}" in cmd
     assert "++trainer.val_check_interval=0.25" in cmd and "torch_threads=2" in cmd
     assert "++trainer.min_epochs=0" in cmd  # else the time limit waits for the epoch's end
+    assert not any(c.startswith("scale.siren.budget_s=") for c in cmd)
+    # the budget schedule decays its rate over the same seconds the fit may take
+    budget = fit_command("siren_gt_n2d", "budget", "paper", tmp_path, tmp_path / "r", 1200)
+    assert "siren_schedule=budget" in budget and "scale.siren.budget_s=1200" in budget
+    assert "++trainer.max_time={seconds:1200}" in budget
+    assert DEFAULT_SCHEDULES == ("paper", "fast")
     with pytest.raises(ValueError, match="schedule: expected one of"):
         fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
     with pytest.raises(ValueError, match="method: expected one of"):

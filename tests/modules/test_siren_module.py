@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
 from sss2bathy.losses.siren import height_loss
@@ -20,6 +21,7 @@ from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.lambertian import LambertianSensorModel
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.siren import Siren
+from sss2bathy.modules.schedules import WallClockExponentialLR
 from sss2bathy.modules.siren import SirenModule
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -161,6 +163,7 @@ def _fit_from_config(cfg):
         ("siren_gt_n2d", ["model.sensor=null"]),
         ("siren_gt_n2d", ["model.line_offset=true"]),
         ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
+        ("siren_gt_n2d", ["siren_schedule=budget", "scale.siren.budget_s=600"]),
     ],
 )
 def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extra):
@@ -169,6 +172,15 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
     assert cfg.trainer.max_epochs == cfg.scale.siren.max_epochs
     trainer, model, dm = _fit_from_config(cfg)
     metrics = trainer.callback_metrics
+    sched = trainer.lr_scheduler_configs[0]
+    if "siren_schedule=budget" in extra:  # the fast decay over 600 s of wall clock
+        assert isinstance(sched.scheduler, WallClockExponentialLR) and sched.interval == "step"
+        assert sched.scheduler.budget_s == 600.0 and sched.scheduler.decay_epochs == 10
+        assert sched.scheduler.gamma == pytest.approx(0.7)
+        assert OmegaConf.to_container(cfg.trainer.max_time) == {"seconds": 600}
+    else:
+        assert isinstance(sched.scheduler, torch.optim.lr_scheduler.ExponentialLR)
+        assert sched.interval == "epoch"
     assert torch.isfinite(metrics["train/loss"])
     if "model.sensor=null" in extra:  # heights only: no sidescan term
         assert "train/loss_sensor" not in metrics
