@@ -8,7 +8,8 @@ benchmarks call it through the module's ``sidescan_geometry``.
 1. for every bin the sensor model can use, the depression angle where its arc crosses the
    SIREN (:func:`~sss2bathy.models.intersection.find_intersections`, under ``no_grad``),
    warm-started from the bin's previous solution (``theta_cache``, NaN = none yet,
-   +inf = no crossing last time);
+   +inf = no crossing last time; with ``finder.neighbour_start`` a bin never solved starts
+   from a solved bin of its ping and side, :func:`~sss2bathy.models.intersection.neighbour_guess`);
 2. at the valid crossings, the SIREN's height gradient *with a graph*
    (:meth:`~sss2bathy.models.siren.Siren.height_and_gradient`) and the head-plane normal
    (:func:`~sss2bathy.geometry.head_plane_normal_from_gradient`, eq. 1-3), packed into an
@@ -23,7 +24,7 @@ from typing import Any
 import torch
 
 from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
-from sss2bathy.models.intersection import FinderSettings, find_intersections
+from sss2bathy.models.intersection import FinderSettings, find_intersections, neighbour_guess
 from sss2bathy.models.sensors import ArcGeometry
 from sss2bathy.models.siren import Siren, autocast_disabled
 
@@ -63,7 +64,13 @@ def arc_geometry(
     # Geometry in float32 even under an enclosing autocast (bf16 would move crossings and
     # normals by centimetres); the SIREN picks its own precision (Siren.precision).
     with autocast_disabled(sonar.device):
-        theta0 = theta_cache[cache_idx] if warm else None
+        theta0 = None
+        if warm and finder.neighbour_start:
+            # bins never solved start from a solved bin of their ping and side
+            rows = neighbour_guess(theta_cache[batch["index"]], batch["range_m"])
+            theta0 = rows[pi, si, bi]
+        elif warm:
+            theta0 = theta_cache[cache_idx]
         theta, valid, n_iter = find_intersections(
             siren, sonar, rot, range_m, si, theta_limits, theta0=theta0, settings=finder
         )

@@ -106,6 +106,12 @@ class FinderSettings:
             further than one grid spacing; ``inf`` = a plain grid of ``n_scan`` angles.
         warm_bracket_deg: half-width of the warm-start bracket (degrees).
         chunk: points per surface evaluation.
+        neighbour_start: a bin with no crossing of its own yet starts from the nearest bin
+            of its ping and side that has one, at the angle that puts it at the same depth
+            below the sonar (:func:`neighbour_guess`): a warm bracket instead of a cold
+            scan. Pays when bins are seldom revisited (a paper-scale survey, few bins per
+            step: ``data.bin_fraction``). Like any warm start it trusts the crossing near
+            the guess to be the first.
     """
 
     solver: str = "secant"
@@ -117,6 +123,7 @@ class FinderSettings:
     scan_max_slope: float = 1.0
     warm_bracket_deg: float = 0.5
     chunk: int = 8192
+    neighbour_start: bool = False
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> ValueError:
@@ -143,6 +150,8 @@ class FinderSettings:
             raise bad("warm_bracket_deg", "a positive angle (degrees)")
         if not (_is_int(self.chunk) and self.chunk >= 1):
             raise bad("chunk", "an integer >= 1 (points)")
+        if not isinstance(self.neighbour_start, bool):
+            raise bad("neighbour_start", "true or false")
 
     @classmethod
     def from_mapping(cls, finder: Mapping[str, Any] | FinderSettings | None) -> FinderSettings:
@@ -168,6 +177,37 @@ class FinderSettings:
     def warm_bracket_rad(self) -> float:
         """:attr:`warm_bracket_deg` in radians."""
         return math.radians(self.warm_bracket_deg)
+
+
+def neighbour_guess(theta: torch.Tensor, range_m: torch.Tensor) -> torch.Tensor:
+    """Warm-start angles for the bins of ``theta (..., B)`` that have none (NaN), from the
+    nearest bin of the same row (ping and side) that has a crossing (finite): the angle at
+    which the bin's arc reaches the neighbour's depth below the sonar,
+    ``asin(r_n sin(theta_n) / r)`` (exact on ground flat across the head plane). Bins with a
+    crossing or marked ``+inf`` keep their value; rows without a crossing, and bins whose
+    arc cannot reach the neighbour's depth, stay NaN.
+
+    Args:
+        theta: ``(..., B)`` depression angles (rad); NaN = unknown, ``+inf`` = no crossing.
+        range_m: ``(B,)`` slant range of each bin (m).
+    """
+    n_bins = theta.shape[-1]
+    if range_m.shape != (n_bins,):
+        raise ValueError(f"range_m: expected shape ({n_bins},), found {tuple(range_m.shape)}")
+    known = torch.isfinite(theta)
+    pos = torch.arange(n_bins, device=theta.device).expand_as(theta)
+    # nearest known bin at or below / at or above each bin (-1 / n_bins when none)
+    below = torch.where(known, pos, -1).cummax(-1).values
+    above = torch.where(known, pos, n_bins).flip(-1).cummin(-1).values.flip(-1)
+    use_above = (above < n_bins) & ((below < 0) | (above - pos < pos - below))
+    nearest = torch.where(use_above, above, below)
+    has = nearest >= 0
+    r = range_m.to(theta.dtype)
+    idx = nearest.clamp(0, n_bins - 1)
+    depth = r[idx] * torch.sin(torch.gather(torch.nan_to_num(theta, 0.0, 0.0, 0.0), -1, idx))
+    ratio = depth / r.expand_as(theta)
+    guess = torch.where(has & (ratio.abs() <= 1.0), torch.asin(ratio.clamp(-1.0, 1.0)), torch.nan)
+    return torch.where(torch.isnan(theta), guess, theta)
 
 
 class HeightField(Protocol):

@@ -178,6 +178,8 @@ class SirenModule(pl.LightningModule):
         self.inputs: SirenInputs | None = None
         self.scorer: MapScorer | None = None
         self.latest_evaluation: MapEvaluation | None = None
+        # per-epoch sums of the training step's terms and statistics (training_step)
+        self._train_sums: dict[str, tuple[torch.Tensor, int]] = {}
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
@@ -272,12 +274,24 @@ class SirenModule(pl.LightningModule):
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         out = self.model_step(batch)
         n = int(batch["position"].shape[0])
+        self.log("train/loss", out["loss"].detach(), on_step=True, on_epoch=True,
+                 prog_bar=True, batch_size=n)  # fmt: skip
+        # The other terms and statistics: epoch means weighted by the batch's pings, as
+        # Lightning's on_epoch logging makes them, summed here and logged once an epoch
+        # (a self.log call costs ~2 ms on a CPU, 10-15 % of a small step)
         for key, value in out.items():
-            first = key == "loss"
-            value = value.detach() if first else value
-            self.log(f"train/{key}", value, on_step=first, on_epoch=True, prog_bar=first,
-                     batch_size=n)  # fmt: skip
+            if key != "loss":
+                total, weight = self._train_sums.get(key, (0.0, 0))
+                self._train_sums[key] = (total + value.detach().float() * n, weight + n)
         return out["loss"]
+
+    def on_train_epoch_start(self) -> None:
+        self._train_sums = {}
+
+    def on_train_epoch_end(self) -> None:
+        for key, (total, weight) in self._train_sums.items():
+            self.log(f"train/{key}", total / weight, on_step=False, on_epoch=True)
+        self._train_sums = {}
 
     # -------------------------------------------------------------- evaluation
     def evaluate_map(self) -> MapEvaluation:

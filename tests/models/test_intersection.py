@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation
-from sss2bathy.models.intersection import FinderSettings, find_intersections
+from sss2bathy.models.intersection import FinderSettings, find_intersections, neighbour_guess
 from sss2bathy.models.siren import Siren
 
 BEAM = (0.0, math.radians(60.0))  # tilt 30 deg, beam width 60 deg
@@ -251,6 +251,7 @@ def test_finder_validates_inputs():
         ("scan_max_slope", math.nan, "a slope >= 0"),
         ("warm_bracket_deg", 0.0, "a positive angle"),
         ("chunk", 0, "an integer >= 1"),
+        ("neighbour_start", 1, "true or false"),
     ],
 )
 def test_finder_settings_name_the_field_expected_and_found(field, value, expected):
@@ -564,3 +565,78 @@ def test_benchmark_newton_vs_paper_gd_on_a_siren(capsys):
     assert v_n.sum() >= v_g.sum()
     assert torch.equal(v_w, v_n)
     assert it_g[both].float().mean() > 5 * it_n[both].float().mean()
+
+
+# ------------------------------------------------------------ neighbour start
+def test_neighbour_guess_puts_unsolved_bins_at_the_nearest_solved_depth():
+    r = torch.tensor([10.0, 11.0, 12.0, 13.0, 14.0, 15.0])
+    depth = 8.0  # flat ground 8 m below the sonar: theta = asin(8 / r) in every bin
+    truth = torch.asin(depth / r)
+    nan, inf = math.nan, math.inf
+    rows = torch.tensor(
+        [
+            [nan, nan, float(truth[2]), nan, nan, nan],  # one solved bin: all follow it
+            [float(truth[0]), nan, nan, nan, inf, nan],  # +inf kept; the last bin
+            [nan] * 6,  # nothing solved: stays unknown
+        ]
+    )
+    guess = neighbour_guess(rows, r)
+    assert torch.allclose(guess[0], truth, atol=1e-6)
+    assert torch.allclose(guess[1, :4], truth[:4], atol=1e-6)
+    assert guess[1, 4] == inf and torch.allclose(guess[1, 5], truth[5], atol=1e-6)
+    assert torch.isnan(guess[2]).all()
+    # the nearest solved bin wins: bin 3 is 1 from bin 4 and 3 from bin 0
+    steep = rows.clone()[1:2]
+    steep[0, 4] = float(torch.asin(torch.tensor(12.0 / 14.0)))  # 12 m deep at bin 4
+    g = neighbour_guess(steep, r)[0]
+    assert g[3] == pytest.approx(math.asin(12.0 / 13.0), abs=1e-6)
+    assert g[1] == pytest.approx(float(truth[1]), abs=1e-6)  # from bin 0
+    # a depth a bin's arc cannot reach (12 m > 11 m range) stays unknown
+    short = torch.tensor([[nan, float(torch.asin(torch.tensor(12.0 / 13.0)))]])
+    assert torch.isnan(neighbour_guess(short, torch.tensor([11.0, 13.0]))[0, 0])
+    with pytest.raises(ValueError, match=r"range_m: expected shape \(6,\), found \(5,\)"):
+        neighbour_guess(rows, r[:5])
+
+
+def test_neighbour_start_replaces_cold_scans_with_the_same_crossings():
+    from sss2bathy.models.arc_fit import arc_geometry
+
+    # gently sloping ground, as a seabed is mostly: the flat guess is close, not exact
+    surface, spread, ranges = Plane(-15.0, 0.02, -0.01), 15.0, torch.linspace(16.0, 45.0, 40)
+    g = torch.Generator().manual_seed(5)
+    n_pings, n_bins = 6, ranges.shape[0]
+    xy = (torch.rand(n_pings, 2, generator=g) * 2 - 1) * spread
+    batch = {
+        "position": torch.cat([xy, torch.zeros(n_pings, 1)], 1),
+        "rotation": attitude_to_rotation(
+            torch.rand(n_pings, generator=g) * 6.28, torch.zeros(n_pings), torch.zeros(n_pings)
+        ).float(),
+        "range_m": ranges.float(),
+        "line": torch.zeros(n_pings, dtype=torch.long),
+        "index": torch.arange(n_pings),
+    }
+    calls = {"n": 0}
+
+    class Counting(torch.nn.Module):
+        def height(self, xy):
+            calls["n"] += xy.shape[0]
+            return surface.height(xy)
+
+        def height_and_gradient(self, xy):
+            return surface.height_and_gradient(xy)
+
+    use = torch.ones(n_pings, 2, n_bins, dtype=torch.bool)
+    first = torch.zeros_like(use)
+    first[..., ::8] = True  # a first step solved every 8th bin
+    results = {}
+    for neighbour in (False, True):
+        cache = torch.full((n_pings, 2, n_bins), torch.nan)
+        settings = {"neighbour_start": neighbour, "tol_m": 1e-4}
+        arc_geometry(Counting(), batch, first, BEAM, settings, cache)
+        calls["n"] = 0
+        geo, _ = arc_geometry(Counting(), batch, use & ~first, BEAM, settings, cache)
+        results[neighbour] = (geo, calls["n"])
+    (cold, n_cold), (near, n_near) = results[False], results[True]
+    assert torch.equal(cold.bin, near.bin) and torch.equal(cold.ping, near.ping)
+    assert torch.allclose(cold.points, near.points, atol=2e-4)  # the same crossings
+    assert n_near < 0.75 * n_cold, (n_near, n_cold)  # warm brackets instead of scans

@@ -150,7 +150,7 @@ def tiny_survey(tmp_path_factory) -> Path:
 def _fit_from_config(cfg):
     dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
     model = hydra.utils.instantiate(cfg.model)
-    trainer = hydra.utils.instantiate(cfg.trainer)
+    trainer = hydra.utils.instantiate(cfg.trainer, _convert_="partial")  # as sss2bathy-train
     trainer.fit(model, datamodule=dm)
     return trainer, model, dm
 
