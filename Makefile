@@ -174,7 +174,7 @@ real1m: install ## Issue 19 targets on the real 1 m grid: SIREN GT-N2d, CNN-N2d,
 
 .PHONY: paper-cpu-study
 BUDGET ?= 20
-paper-cpu-study: install ## Issue 20: paper-scale d1 prepared once, SIREN-GT-N2d and Lambert at the paper and fast schedules, BUDGET min each -> outputs/paper_cpu_study/
+paper-cpu-study: install ## Issue 20: paper-scale d1 prepared once, SIREN-GT-N2d and Lambert at the paper and budget schedules, BUDGET min each -> outputs/paper_cpu_study/
 	$(BIN)/python -m sss2bathy.eval.paper_cpu_study --scale paper --budget-min $(BUDGET) $(ARGS)
 
 tb: install ## TensorBoard on outputs/

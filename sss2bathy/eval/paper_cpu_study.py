@@ -5,9 +5,10 @@
    (``drape=false``) and the draping on the MBES grid (a cache hit on the survey). A cached
    survey is reused (same config hash; :func:`survey_status` says beforehand, a dry compose).
 2. :func:`fit_command` fits SIREN-GT-N2d and SIREN-Lambert with ``sss2bathy-train`` (one
-   process, one fit at a time) at the paper schedule and at the project's fast schedule
-   (``siren_schedule=paper|fast``; ``budget``, the fast schedule's decay spread over the
-   budget, on request), each for at most ``budget`` seconds of fitting
+   process, one fit at a time) at the paper schedule and at the project's time-budget
+   schedule (``siren_schedule=paper|budget``: the fast schedule's decay spread over the
+   budget, a quarter of the bins per step; ``fast``, sized in steps, on request), each for
+   at most ``budget`` seconds of fitting
    (Lightning's ``trainer.max_time``), evaluating the map ``evals_per_epoch`` times an
    epoch (``trainer.val_check_interval``); ``metric_curve.csv`` of each run holds the map
    MAE against the fit's wall seconds (:mod:`sss2bathy.eval.metric_curve`).
@@ -62,8 +63,9 @@ METHODS: dict[str, str] = {
 DEFAULT_METHODS = ("siren_gt_n2d", "siren_lambert")
 #: budget = the fast schedule's decay spread over the time budget (conf/siren_schedule/budget.yaml)
 SCHEDULES = ("paper", "fast", "budget")
-#: run unless ``--schedules`` says otherwise
-DEFAULT_SCHEDULES = ("paper", "fast")
+#: run unless ``--schedules`` says otherwise: the paper's, and the project's pick for a time
+#: budget (the fast schedule sized in steps is cut off by a slow machine; on request)
+DEFAULT_SCHEDULES = ("paper", "budget")
 KEY = "val/map_mae_m"
 CLOCK = "wall_s"
 #: "within 10 % of the best MAE"

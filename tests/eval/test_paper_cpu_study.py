@@ -154,7 +154,7 @@ def test_commands(tmp_path):
     budget = fit_command("siren_gt_n2d", "budget", "paper", tmp_path, tmp_path / "r", 1200)
     assert "siren_schedule=budget" in budget and "scale.siren.budget_s=1200" in budget
     assert "++trainer.max_time={seconds:1200}" in budget
-    assert DEFAULT_SCHEDULES == ("paper", "fast")
+    assert DEFAULT_SCHEDULES == ("paper", "budget")
     with pytest.raises(ValueError, match="schedule: expected one of"):
         fit_command("siren_gt_n2d", "slow", "paper", tmp_path, tmp_path, 60)
     with pytest.raises(ValueError, match="method: expected one of"):
