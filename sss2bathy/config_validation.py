@@ -90,6 +90,10 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
     ("scale.siren.steps_per_epoch", positive_int, "a positive integer or null"),
     ("scale.siren.fast_steps_per_epoch", positive_int, "a positive integer"),
+    # siren_schedule=budget's keys (interpolated into data.bin_fraction, the scheduler, ...)
+    ("scale.siren.budget_s", positive, "a positive number of seconds"),
+    ("scale.siren.bin_fraction", _num(lambda x: 0 < x <= 1), "a fraction in (0, 1]"),
+    ("scale.siren.neighbour_start", boolean, "true or false"),
     # third-party constructors: Lightning's trainer and checkpoints, torch's optimizers
     ("trainer.max_epochs", lambda v: v == -1 or positive_int(v), "a positive integer or -1"),
     ("trainer.min_epochs", non_negative_int, "an integer >= 0"),
