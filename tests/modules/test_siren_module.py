@@ -177,7 +177,7 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
         assert isinstance(sched.scheduler, WallClockExponentialLR) and sched.interval == "step"
         assert sched.scheduler.budget_s == 600.0 and sched.scheduler.decay_epochs == 10
         assert sched.scheduler.gamma == pytest.approx(0.7)
-        assert OmegaConf.to_container(cfg.trainer.max_time) == {"seconds": 600}
+        assert OmegaConf.to_container(cfg.trainer.max_time, resolve=True) == {"seconds": 600}
     else:
         assert isinstance(sched.scheduler, torch.optim.lr_scheduler.ExponentialLR)
         assert sched.interval == "epoch"
