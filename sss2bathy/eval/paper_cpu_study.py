@@ -494,7 +494,8 @@ def run_study(
     ``references``: ``{(method, label): run_dir}`` of further runs of a method made
     elsewhere (e.g. a longer fit, ``parse_reference``): each is a row with its own budget
     (its last evaluation) and its best counts as the method's best. ``tabulate_only``:
-    neither prepare nor fit; tabulate the runs already in ``out/runs`` (and references).
+    neither prepare nor fit; tabulate every run already in ``out/runs``, of any method
+    and schedule (and the references).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -510,8 +511,9 @@ def run_study(
     walls: dict[tuple[str, str], tuple[float, Path]] = {}
     budgets: dict[tuple[str, str], float] = {}
     failed: dict[str, str] = {}
-    for method in methods:
-        for schedule in schedules:
+    # tabulating: every run in out/runs, whichever methods and schedules made it
+    for method in METHODS if tabulate_only else methods:
+        for schedule in SCHEDULES if tabulate_only else schedules:
             run_dir = out / "runs" / f"{method}_{schedule}"
             if tabulate_only and not run_dir.is_dir():
                 continue

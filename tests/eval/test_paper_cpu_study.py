@@ -115,6 +115,16 @@ def test_tabulate_only_reads_existing_runs_and_references(tmp_path):
     assert rows[0]["run"] == "runs/siren_gt_n2d_fast" and rows[1]["run"] == str(ref_dir)
     assert not (tmp_path / "data").exists()
     assert "fast x2" in (out / "paper_cpu_study.md").read_text()
+    # every run in out/runs is tabulated, whichever method and schedule made it
+    _write_run(out / "runs" / "siren_heights_only_budget", [300, 600], [0.8, 0.9])
+    rows = run_study(
+        out, scale="tiny", budget_min=20, data_dir=tmp_path / "data", marks_min=(20,),
+        tabulate_only=True,
+    )  # fmt: skip
+    assert [(r["method"], r["schedule"]) for r in rows] == [
+        ("siren_gt_n2d", "fast"),
+        ("siren_heights_only", "budget"),
+    ]
     for bad, match in (
         ("siren_gt_n2d=x", "METHOD:LABEL=RUN_DIR"),
         ("nope:x=" + str(tmp_path), "expected a method"),

@@ -351,7 +351,10 @@ def test_finder_block_of_the_siren_config_is_finder_settings_defaults():
 
     from sss2bathy.models.intersection import FinderSettings
 
-    block = OmegaConf.to_container(OmegaConf.load(ROOT / "conf/model/siren_normals.yaml").finder)
+    # resolved: a key may default through the scale (neighbour_start: oc.select, false)
+    block = OmegaConf.to_container(
+        OmegaConf.load(ROOT / "conf/model/siren_normals.yaml").finder, resolve=True
+    )
     assert block == dataclasses.asdict(FinderSettings())
     module = SirenModule(Siren(hidden=8, n_layers=3), sensor=None, finder={"solver": "newton"})
     assert module.finder == FinderSettings(solver="newton")
