@@ -205,7 +205,7 @@ def neighbour_guess(theta: torch.Tensor, range_m: torch.Tensor) -> torch.Tensor:
     r = range_m.to(theta.dtype)
     idx = nearest.clamp(0, n_bins - 1)
     depth = r[idx] * torch.sin(torch.gather(torch.nan_to_num(theta, 0.0, 0.0, 0.0), -1, idx))
-    ratio = depth / r.expand_as(theta)
+    ratio = depth / r
     guess = torch.where(has & (ratio.abs() <= 1.0), torch.asin(ratio.clamp(-1.0, 1.0)), torch.nan)
     return torch.where(torch.isnan(theta), guess, theta)
 
