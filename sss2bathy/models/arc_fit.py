@@ -9,7 +9,9 @@ benchmarks call it through the module's ``sidescan_geometry``.
    SIREN (:func:`~sss2bathy.models.intersection.find_intersections`, under ``no_grad``),
    warm-started from the bin's previous solution (``theta_cache``, NaN = none yet,
    +inf = no crossing last time; with ``finder.neighbour_start`` a bin never solved starts
-   from a solved bin of its ping and side, :func:`~sss2bathy.models.intersection.neighbour_guess`);
+   from the solved bins of its ping and side, and a ping seen for the first time solves
+   every ``finder.seed_stride``-th bin cold first:
+   :func:`~sss2bathy.models.intersection.find_row_intersections`);
 2. at the valid crossings, the SIREN's height gradient *with a graph*
    (:meth:`~sss2bathy.models.siren.Siren.height_and_gradient`) and the head-plane normal
    (:func:`~sss2bathy.geometry.head_plane_normal_from_gradient`, eq. 1-3), packed into an
@@ -24,7 +26,7 @@ from typing import Any
 import torch
 
 from sss2bathy.geometry import arc_point, head_plane_normal_from_gradient
-from sss2bathy.models.intersection import FinderSettings, find_intersections, neighbour_guess
+from sss2bathy.models.intersection import FinderSettings, find_row_intersections
 from sss2bathy.models.sensors import ArcGeometry
 from sss2bathy.models.siren import Siren, autocast_disabled
 
@@ -56,30 +58,28 @@ def arc_geometry(
         ``finder_iters`` = mean solver evaluations per bin).
     """
     finder = FinderSettings.from_mapping(finder)
-    pi, si, bi = use.nonzero(as_tuple=True)
-    sonar, rot = batch["position"][pi], batch["rotation"][pi]
-    range_m = batch["range_m"][bi]
     warm = finder.warm_start and theta_cache is not None
-    cache_idx = (batch["index"][pi], si, bi)
+    index = batch["index"]
+    sonar, rot = batch["position"], batch["rotation"]
     # Geometry in float32 even under an enclosing autocast (bf16 would move crossings and
     # normals by centimetres); the SIREN picks its own precision (Siren.precision).
     with autocast_disabled(sonar.device):
-        theta0 = None
-        if warm and finder.neighbour_start:
-            # bins never solved start from a solved bin of their ping and side
-            rows = neighbour_guess(theta_cache[batch["index"]], batch["range_m"])
-            theta0 = rows[pi, si, bi]
-        elif warm:
-            theta0 = theta_cache[cache_idx]
-        theta, valid, n_iter = find_intersections(
-            siren, sonar, rot, range_m, si, theta_limits, theta0=theta0, settings=finder
+        rows, valid, n_iter = find_row_intersections(
+            siren,
+            sonar,
+            rot,
+            batch["range_m"],
+            use,
+            theta_limits,
+            theta_cache[index] if warm else None,
+            settings=finder,
         )
         if warm:
             # +inf marks "no crossing": next time only the beam's ends are checked
-            theta_cache[cache_idx] = torch.where(valid, theta, torch.inf).to(theta_cache.dtype)
-        v = valid.nonzero().squeeze(-1)
-        pi, si, bi = pi[v], si[v], bi[v]
-        sonar, rot, range_m, theta = sonar[v], rot[v], range_m[v], theta[v]
+            theta_cache[index] = rows.to(theta_cache.dtype)
+        pi, si, bi = valid.nonzero(as_tuple=True)
+        sonar, rot, range_m = sonar[pi], rot[pi], batch["range_m"][bi]
+        theta = rows[pi, si, bi].to(sonar.dtype)
         points = arc_point(sonar, rot, range_m, theta, si)
     # the SIREN blocks its points itself (Siren.chunk: cache-sized on CPU)
     grad = siren.height_and_gradient(points[:, :2])[1]
@@ -99,7 +99,7 @@ def arc_geometry(
         bin=bi,
         line=batch["line"][pi],
     )
-    n_bins = max(int(valid.numel()), 1)
+    n_bins = use.sum().clamp_min(1)
     stats = {"valid_fraction": valid.sum() / n_bins, "finder_iters": n_iter.sum() / n_bins}
     return geo, stats
 

@@ -106,12 +106,15 @@ class FinderSettings:
             further than one grid spacing; ``inf`` = a plain grid of ``n_scan`` angles.
         warm_bracket_deg: half-width of the warm-start bracket (degrees).
         chunk: points per surface evaluation.
-        neighbour_start: a bin with no crossing of its own yet starts from the nearest bin
-            of its ping and side that has one, at the angle that puts it at the same depth
-            below the sonar (:func:`neighbour_guess`): a warm bracket instead of a cold
-            scan. Pays when bins are seldom revisited (a paper-scale survey, few bins per
-            step: ``data.bin_fraction``). Like any warm start it trusts the crossing near
-            the guess to be the first.
+        neighbour_start: a bin with no crossing of its own yet starts from the solved bins
+            of its ping and side, at the depth below the sonar they give
+            (:func:`neighbour_guess`): a warm bracket instead of a cold scan. Pays when
+            bins are seldom revisited (a paper-scale survey, few bins per step:
+            ``data.bin_fraction``). Like any warm start it trusts the crossing near the
+            guess to be the first.
+        seed_stride: with ``neighbour_start``, a row (ping and side) with no crossing yet
+            first solves every ``seed_stride``-th of its bins cold and starts the rest
+            from them (:func:`find_row_intersections`); 1 = all of them cold.
     """
 
     solver: str = "secant"
@@ -124,6 +127,7 @@ class FinderSettings:
     warm_bracket_deg: float = 0.5
     chunk: int = 8192
     neighbour_start: bool = False
+    seed_stride: int = 8
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> ValueError:
@@ -152,6 +156,8 @@ class FinderSettings:
             raise bad("chunk", "an integer >= 1 (points)")
         if not isinstance(self.neighbour_start, bool):
             raise bad("neighbour_start", "true or false")
+        if not (_is_int(self.seed_stride) and self.seed_stride >= 1):
+            raise bad("seed_stride", "an integer >= 1 (1 = every bin of a new row cold)")
 
     @classmethod
     def from_mapping(cls, finder: Mapping[str, Any] | FinderSettings | None) -> FinderSettings:
@@ -181,33 +187,125 @@ class FinderSettings:
 
 def neighbour_guess(theta: torch.Tensor, range_m: torch.Tensor) -> torch.Tensor:
     """Warm-start angles for the bins of ``theta (..., B)`` that have none (NaN), from the
-    nearest bin of the same row (ping and side) that has a crossing (finite): the angle at
-    which the bin's arc reaches the neighbour's depth below the sonar,
-    ``asin(r_n sin(theta_n) / r)`` (exact on ground flat across the head plane). Bins with a
-    crossing or marked ``+inf`` keep their value; rows without a crossing, and bins whose
-    arc cannot reach the neighbour's depth, stay NaN.
+    bins of the same row (ping and side) that have a crossing (finite): the angle at which
+    the bin's arc reaches their depth below the sonar, ``asin(d / r)``. Between two solved
+    bins the depth ``d = r_n sin(theta_n)`` is interpolated linearly in range; beyond the
+    last (or before the first) solved bin of the row it is that bin's depth. Exact on
+    ground flat across the head plane, and close on a gentle slope. Bins with a crossing
+    or marked ``+inf`` keep their value; rows without a crossing, and bins whose arc
+    cannot reach the depth, stay NaN.
 
     Args:
         theta: ``(..., B)`` depression angles (rad); NaN = unknown, ``+inf`` = no crossing.
-        range_m: ``(B,)`` slant range of each bin (m).
+        range_m: ``(B,)`` slant range of each bin (m), increasing.
     """
     n_bins = theta.shape[-1]
     if range_m.shape != (n_bins,):
         raise ValueError(f"range_m: expected shape ({n_bins},), found {tuple(range_m.shape)}")
     known = torch.isfinite(theta)
-    pos = torch.arange(n_bins, device=theta.device).expand_as(theta)
+    pos = torch.arange(n_bins, device=theta.device)
     # nearest known bin at or below / at or above each bin (-1 / n_bins when none)
     below = torch.where(known, pos, -1).cummax(-1).values
     above = torch.where(known, pos, n_bins).flip(-1).cummin(-1).values.flip(-1)
-    use_above = (above < n_bins) & ((below < 0) | (above - pos < pos - below))
-    nearest = torch.where(use_above, above, below)
-    has = nearest >= 0
+    has_below, has_above = below >= 0, above < n_bins
     r = range_m.to(theta.dtype)
-    idx = nearest.clamp(0, n_bins - 1)
-    depth = r[idx] * torch.sin(torch.gather(torch.nan_to_num(theta, 0.0, 0.0, 0.0), -1, idx))
-    ratio = depth / r
+    depth = r * torch.sin(torch.nan_to_num(theta, 0.0, 0.0, 0.0))
+    i_b, i_a = below.clamp(0, n_bins - 1), above.clamp(0, n_bins - 1)
+    d_b, d_a = torch.gather(depth, -1, i_b), torch.gather(depth, -1, i_a)
+    r_b, r_a = r[i_b], r[i_a]
+    # weight of the bin above; one side only: that side's depth
+    w = ((r - r_b) / (r_a - r_b).clamp_min(torch.finfo(r.dtype).tiny)).clamp(0.0, 1.0)
+    w = torch.where(has_below, torch.where(has_above, w, 0.0), 1.0)
+    ratio = torch.lerp(d_b, d_a, w) / r
+    has = has_below | has_above
     guess = torch.where(has & (ratio.abs() <= 1.0), torch.asin(ratio.clamp(-1.0, 1.0)), torch.nan)
     return torch.where(torch.isnan(theta), guess, theta)
+
+
+def seed_bins(use: torch.Tensor, blank: torch.Tensor, stride: int) -> torch.Tensor:
+    """``(..., B)`` bool: every ``stride``-th used bin (the first, then each ``stride``-th
+    in order of range) of the rows where ``blank (...)`` is true; none elsewhere."""
+    rank = use.long().cumsum(-1) - 1
+    return use & blank.unsqueeze(-1) & (rank % stride == 0)
+
+
+@torch.no_grad()
+def find_row_intersections(
+    surface: HeightField,
+    sonar: torch.Tensor,
+    R: torch.Tensor,
+    range_m: torch.Tensor,
+    use: torch.Tensor,
+    theta_limits: tuple[float, float],
+    rows: torch.Tensor | None = None,
+    *,
+    settings: FinderSettings | Mapping[str, Any] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`find_intersections` for the bins ``use`` of whole pings, each started from its
+    row's last crossings (ping and side: ``rows``).
+
+    With ``settings.neighbour_start`` a bin with no crossing of its own starts from its
+    row's solved bins (:func:`neighbour_guess`); a row with none yet (a ping seen for the
+    first time) first solves every ``settings.seed_stride``-th of its used bins cold
+    (:func:`seed_bins`), and the rest then start from those (coarse to fine). Without
+    ``settings.warm_start`` every bin is solved cold.
+
+    Args:
+        surface, theta_limits: as :func:`find_intersections`.
+        sonar: ``(P, 3)`` sonar positions (m); ``R``: ``(P, 3, 3)`` rotations.
+        range_m: ``(B,)`` slant range of each bin (m), increasing.
+        use: ``(P, 2, B)`` bool, the bins to solve.
+        rows: ``(P, 2, B)`` previous angles (rad; NaN = unknown, ``+inf`` = no crossing
+            last time), or ``None`` (all unknown).
+
+    Returns:
+        ``rows (P, 2, B)``: ``rows`` (NaN if ``None``) with each used bin's crossing, or
+        ``+inf`` where it has none; ``valid`` and ``n_iter (P, 2, B)`` (``False`` / 0 for
+        unused bins; ``n_iter`` counts the seeds' cold solve too).
+    """
+    cfg = FinderSettings.from_mapping(settings)
+    if not isinstance(use, torch.Tensor) or use.dtype != torch.bool or use.ndim != 3:
+        raise ValueError(f"use: expected a (P, 2, B) bool tensor, found {getattr(use, 'shape', use)}")
+    n_pings, _, n_bins = use.shape
+    if use.shape[1] != 2 or sonar.shape[:1] != (n_pings,) or range_m.shape != (n_bins,):
+        raise ValueError(
+            f"use (P, 2, B), sonar (P, 3), range_m (B,): found {tuple(use.shape)}, "
+            f"{tuple(sonar.shape)}, {tuple(range_m.shape)}"
+        )
+    if rows is None:
+        rows = torch.full(use.shape, torch.nan, device=sonar.device, dtype=sonar.dtype)
+    elif rows.shape != use.shape:
+        raise ValueError(f"rows: expected shape {tuple(use.shape)}, found {tuple(rows.shape)}")
+    rows = rows.clone()
+    valid = torch.zeros_like(use)
+    n_iter = torch.zeros(use.shape, dtype=torch.long, device=use.device)
+
+    def solve(sel: torch.Tensor, theta0: torch.Tensor | None) -> None:
+        pi, si, bi = sel.nonzero(as_tuple=True)
+        theta, ok, it = find_intersections(
+            surface, sonar[pi], R[pi], range_m[bi], si, theta_limits,
+            theta0=None if theta0 is None else theta0[pi, si, bi], settings=cfg,
+        )  # fmt: skip
+        rows[pi, si, bi] = torch.where(ok, theta, torch.inf).to(rows.dtype)
+        valid[pi, si, bi] = ok
+        n_iter[pi, si, bi] += it
+
+    if not cfg.warm_start:
+        solve(use, None)
+        return rows, valid, n_iter
+    todo = use
+    if cfg.neighbour_start:
+        if cfg.seed_stride > 1:
+            blank = ~torch.isfinite(rows).any(-1) & use.any(-1)
+            if bool(blank.any()):
+                seeds = seed_bins(use, blank, cfg.seed_stride)
+                solve(seeds, rows)
+                todo = use & ~seeds
+        theta0 = neighbour_guess(rows, range_m)
+    else:
+        theta0 = rows
+    solve(todo, theta0)
+    return rows, valid, n_iter
 
 
 class HeightField(Protocol):

@@ -10,7 +10,13 @@ import pytest
 import torch
 
 from sss2bathy.geometry import arc_point, attitude_to_rotation
-from sss2bathy.models.intersection import FinderSettings, find_intersections, neighbour_guess
+from sss2bathy.models.intersection import (
+    FinderSettings,
+    find_intersections,
+    find_row_intersections,
+    neighbour_guess,
+    seed_bins,
+)
 from sss2bathy.models.siren import Siren
 
 BEAM = (0.0, math.radians(60.0))  # tilt 30 deg, beam width 60 deg
@@ -252,6 +258,8 @@ def test_finder_validates_inputs():
         ("warm_bracket_deg", 0.0, "a positive angle"),
         ("chunk", 0, "an integer >= 1"),
         ("neighbour_start", 1, "true or false"),
+        ("seed_stride", 0, "an integer >= 1"),
+        ("seed_stride", 2.5, "an integer >= 1"),
     ],
 )
 def test_finder_settings_name_the_field_expected_and_found(field, value, expected):
@@ -568,7 +576,7 @@ def test_benchmark_newton_vs_paper_gd_on_a_siren(capsys):
 
 
 # ------------------------------------------------------------ neighbour start
-def test_neighbour_guess_puts_unsolved_bins_at_the_nearest_solved_depth():
+def test_neighbour_guess_puts_unsolved_bins_at_their_rows_solved_depths():
     r = torch.tensor([10.0, 11.0, 12.0, 13.0, 14.0, 15.0])
     depth = 8.0  # flat ground 8 m below the sonar: theta = asin(8 / r) in every bin
     truth = torch.asin(depth / r)
@@ -585,17 +593,27 @@ def test_neighbour_guess_puts_unsolved_bins_at_the_nearest_solved_depth():
     assert torch.allclose(guess[1, :4], truth[:4], atol=1e-6)
     assert guess[1, 4] == inf and torch.allclose(guess[1, 5], truth[5], atol=1e-6)
     assert torch.isnan(guess[2]).all()
-    # the nearest solved bin wins: bin 3 is 1 from bin 4 and 3 from bin 0
+    # between two solved bins the depth is interpolated in range: bin 0 at 8 m, bin 4 at
+    # 12 m -> bin 1 at 9 m, bin 3 at 11 m; beyond bin 4 its depth (12 m)
     steep = rows.clone()[1:2]
-    steep[0, 4] = float(torch.asin(torch.tensor(12.0 / 14.0)))  # 12 m deep at bin 4
+    steep[0, 4] = float(torch.asin(torch.tensor(12.0 / 14.0)))
     g = neighbour_guess(steep, r)[0]
-    assert g[3] == pytest.approx(math.asin(12.0 / 13.0), abs=1e-6)
-    assert g[1] == pytest.approx(float(truth[1]), abs=1e-6)  # from bin 0
+    assert g[1] == pytest.approx(math.asin(9.0 / 11.0), abs=1e-6)
+    assert g[3] == pytest.approx(math.asin(11.0 / 13.0), abs=1e-6)
+    assert g[5] == pytest.approx(math.asin(12.0 / 15.0), abs=1e-6)
     # a depth a bin's arc cannot reach (12 m > 11 m range) stays unknown
     short = torch.tensor([[nan, float(torch.asin(torch.tensor(12.0 / 13.0)))]])
     assert torch.isnan(neighbour_guess(short, torch.tensor([11.0, 13.0]))[0, 0])
     with pytest.raises(ValueError, match=r"range_m: expected shape \(6,\), found \(5,\)"):
         neighbour_guess(rows, r[:5])
+
+
+def test_seed_bins_take_every_stride_th_used_bin_of_blank_rows():
+    use = torch.tensor([[1, 0, 1, 1, 0, 1, 1, 1], [1, 1, 1, 1, 1, 1, 1, 1]], dtype=torch.bool)
+    seeds = seed_bins(use, torch.tensor([True, False]), 3)
+    # used bins of row 0: 0, 2, 3, 5, 6, 7 -> every third from the first: 0 and 5
+    assert seeds[0].nonzero().squeeze(-1).tolist() == [0, 5]
+    assert not seeds[1].any()
 
 
 def test_neighbour_start_replaces_cold_scans_with_the_same_crossings():
@@ -640,3 +658,56 @@ def test_neighbour_start_replaces_cold_scans_with_the_same_crossings():
     assert torch.equal(cold.bin, near.bin) and torch.equal(cold.ping, near.ping)
     assert torch.allclose(cold.points, near.points, atol=2e-4)  # the same crossings
     assert n_near < 0.75 * n_cold, (n_near, n_cold)  # warm brackets instead of scans
+
+
+@pytest.mark.parametrize("kind", ["smooth", "rough"])
+def test_seeded_rows_find_the_cold_crossings_with_fewer_evaluations(kind):
+    # pings seen for the first time: every 8th used bin of a row is solved cold, the rest
+    # start from them; the crossings are the cold scan's, for far fewer surface heights
+    wavelengths, slope = {"smooth": ((20.0, 60.0), 0.3), "rough": ((4.0, 12.0), 0.6)}[kind]
+    surface = _Counting(Waves(-15.0, wavelengths, slope, seed=1))
+    n_pings, ranges = 10, torch.linspace(12.0, 45.0, 96)  # a few never reach the floor
+    sonar_f, R_f, r_f, side_f = _bins(n_pings, 15.0, ranges, seed=2)
+    n_bins = ranges.shape[0]
+    sonar = sonar_f.reshape(n_pings, 2 * n_bins, 3)[:, 0]
+    R = R_f.reshape(n_pings, 2 * n_bins, 3, 3)[:, 0]
+    use = torch.rand(n_pings, 2, n_bins, generator=torch.Generator().manual_seed(3)) < 0.5
+    use[0, 1] = False  # a row with nothing to solve
+    rows_in = torch.full(use.shape, torch.nan, dtype=torch.float64)
+    rows_in[1] = 0.3  # rows solved before (not blank): no seeds there
+    out = {}
+    for neighbour in (False, True):
+        surface.heights = 0
+        settings = {"neighbour_start": neighbour, "tol_m": 1e-4, "warm_start": True}
+        rows, valid, n_iter = find_row_intersections(
+            surface, sonar, R, ranges.double(), use, BEAM, rows_in, settings=settings
+        )
+        out[neighbour] = rows, valid, n_iter, surface.heights
+    (rows_c, valid_c, it_c, n_c), (rows_s, valid_s, it_s, n_s) = out[False], out[True]
+    # unused bins keep their value; used bins without a crossing are +inf
+    assert torch.equal(rows_s[~use].isnan(), rows_in[~use].isnan())
+    assert (rows_s[use & ~valid_s] == math.inf).all() and not valid_s[~use].any()
+    assert (it_s[~use] == 0).all() and (it_s[valid_s] >= 1).all()
+    # the flat lists of the same bins, cold, for the reference
+    pi, si, bi = use.nonzero(as_tuple=True)
+    ref = _dense_reference(surface.surface, sonar[pi], R[pi], ranges.double()[bi], si, BEAM)[0]
+    same = _points_mm(sonar[pi], R[pi], ranges.double()[bi], si, rows_s[use], ref)
+    found = torch.isfinite(ref)
+    assert torch.equal(valid_s[use], valid_c[use])
+    agree = (same[found & valid_s[use]] < SAME_CROSSING_MM).float().mean()
+    assert agree == 1.0, agree
+    # a sixth of the bins have no crossing in the beam and are scanned to its end either
+    # way; the rest take about 2/3 of the cold heights (README -> Performance)
+    assert (~valid_s[use]).sum() > 100
+    assert n_s < 0.82 * n_c, (n_s, n_c)
+    # warm_start false: every bin cold, whatever neighbour_start says
+    surface.heights = 0
+    rows_w, valid_w, _ = find_row_intersections(
+        surface, sonar, R, ranges.double(), use, BEAM, rows_in,
+        settings={"neighbour_start": True, "warm_start": False, "tol_m": 1e-4},
+    )  # fmt: skip
+    assert torch.equal(valid_w, valid_c) and surface.heights > n_s
+    with pytest.raises(ValueError, match=r"rows: expected shape \(10, 2, 96\), found \(10, 2, 5\)"):
+        find_row_intersections(surface, sonar, R, ranges, use, BEAM, rows_in[..., :5])
+    with pytest.raises(ValueError, match=r"use: expected a \(P, 2, B\) bool tensor"):
+        find_row_intersections(surface, sonar, R, ranges, use.float(), BEAM)
