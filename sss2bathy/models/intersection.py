@@ -265,7 +265,9 @@ def find_row_intersections(
     """
     cfg = FinderSettings.from_mapping(settings)
     if not isinstance(use, torch.Tensor) or use.dtype != torch.bool or use.ndim != 3:
-        raise ValueError(f"use: expected a (P, 2, B) bool tensor, found {getattr(use, 'shape', use)}")
+        raise ValueError(
+            f"use: expected a (P, 2, B) bool tensor, found {getattr(use, 'shape', use)}"
+        )
     n_pings, _, n_bins = use.shape
     if use.shape[1] != 2 or sonar.shape[:1] != (n_pings,) or range_m.shape != (n_bins,):
         raise ValueError(

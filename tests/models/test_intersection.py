@@ -683,7 +683,7 @@ def test_seeded_rows_find_the_cold_crossings_with_fewer_evaluations(kind):
             surface, sonar, R, ranges.double(), use, BEAM, rows_in, settings=settings
         )
         out[neighbour] = rows, valid, n_iter, surface.heights
-    (rows_c, valid_c, it_c, n_c), (rows_s, valid_s, it_s, n_s) = out[False], out[True]
+    (_, valid_c, _, n_c), (rows_s, valid_s, it_s, n_s) = out[False], out[True]
     # unused bins keep their value; used bins without a crossing are +inf
     assert torch.equal(rows_s[~use].isnan(), rows_in[~use].isnan())
     assert (rows_s[use & ~valid_s] == math.inf).all() and not valid_s[~use].any()
