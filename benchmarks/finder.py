@@ -119,8 +119,10 @@ def bench_finder(
     use = batch["mask"] == 0
 
     def solve_rows(surf, solver: str, theta0=None, max_iter=None):
-        # whole pings seen for the first time: every seed_stride-th bin of a row cold, the
-        # rest from them (find_row_intersections); back to the flat order of ``arcs``
+        # whole pings seen for the first time (``theta0`` must be None): every
+        # seed_stride-th bin of a row cold, the rest from them (find_row_intersections);
+        # back to the flat order of ``arcs``
+        assert theta0 is None, "seeded rows are a cold solve"
         rows, valid, n_iter = find_row_intersections(
             surf,
             batch["position"],
@@ -128,7 +130,12 @@ def bench_finder(
             batch["range_m"],
             use,
             limits,
-            settings={"solver": solver, "tol_m": tol_m, "neighbour_start": True},
+            settings={
+                "solver": solver,
+                "max_iter": max_iter,
+                "tol_m": tol_m,
+                "neighbour_start": True,
+            },
         )
         valid = valid[pi, si, bi]
         return torch.where(valid, rows[pi, si, bi], torch.nan), valid, n_iter[pi, si, bi]

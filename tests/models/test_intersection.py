@@ -711,3 +711,35 @@ def test_seeded_rows_find_the_cold_crossings_with_fewer_evaluations(kind):
         find_row_intersections(surface, sonar, R, ranges, use, BEAM, rows_in[..., :5])
     with pytest.raises(ValueError, match=r"use: expected a \(P, 2, B\) bool tensor"):
         find_row_intersections(surface, sonar, R, ranges, use.float(), BEAM)
+
+
+def test_arc_geometry_without_neighbour_start_is_the_flat_warm_started_solve():
+    # the row solver under arc_geometry changes nothing by default: the same crossings,
+    # cache and statistics as find_intersections on the flat list of used bins
+    from sss2bathy.models.arc_fit import arc_geometry
+
+    surface = Waves(-15.0, (20.0, 60.0), 0.3, seed=1)
+    n_pings, ranges = 6, torch.linspace(12.0, 45.0, 64)
+    sonar_f, R_f, _, _ = _bins(n_pings, 15.0, ranges, seed=2)
+    n_bins = ranges.shape[0]
+    batch = {
+        "position": sonar_f.reshape(n_pings, 2 * n_bins, 3)[:, 0].float(),
+        "rotation": R_f.reshape(n_pings, 2 * n_bins, 3, 3)[:, 0].float(),
+        "range_m": ranges,
+        "line": torch.zeros(n_pings, dtype=torch.long),
+        "index": torch.arange(n_pings),
+    }
+    cache_rows = torch.full((n_pings, 2, n_bins), torch.nan)
+    cache_flat = cache_rows.clone()
+    for step in range(3):
+        use = torch.rand(cache_rows.shape, generator=torch.Generator().manual_seed(step)) < 0.5
+        geo, stats = arc_geometry(surface, batch, use, BEAM, {}, cache_rows)
+        pi, si, bi = use.nonzero(as_tuple=True)
+        theta, valid, n_iter = find_intersections(
+            surface, batch["position"][pi], batch["rotation"][pi], ranges[bi], si, BEAM,
+            theta0=cache_flat[pi, si, bi],
+        )  # fmt: skip
+        cache_flat[pi, si, bi] = torch.where(valid, theta, torch.inf)
+        assert torch.equal(geo.theta, theta[valid])
+        assert torch.equal(cache_rows.nan_to_num(7.0), cache_flat.nan_to_num(7.0))
+        assert float(stats["finder_iters"]) == pytest.approx(float(n_iter.float().mean()))
