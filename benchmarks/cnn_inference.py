@@ -2,9 +2,12 @@
 forward pass in each variant, interleaved in one run (medians), and the projected time
 for a survey's lines at each inference overlap.
 
-Variants: ``fp32`` (``torch.no_grad``, contiguous), ``fp32_cl`` (``channels_last``),
-``bf16`` (CPU autocast to bfloat16), ``bf16_cl``; each under ``torch.inference_mode``.
-Random weights: the cost of a forward pass does not depend on them.
+Variants: ``fp32`` (contiguous), ``fp32_cl`` (``channels_last``), ``bf16`` (CPU autocast
+to bfloat16), ``bf16_cl``, ``bf16_net`` (a bfloat16 copy of the network on bfloat16
+windows: what ``predict_waterfall(precision="bf16")`` runs,
+:func:`sss2bathy.data.cnn_normals.inference_net`), ``bf16_net_cl``; each under
+``torch.inference_mode``. Random weights: the cost of a forward pass does not depend on
+them.
 
 The projection (``projected_min_12_lines``) is windows / windows-per-second for the paper's
 12 test lines (2000 pings, 512 bins per side, both heads) at each ``--overlaps`` value
@@ -27,7 +30,7 @@ from collections.abc import Sequence
 
 import torch
 
-VARIANTS = ("fp32", "fp32_cl", "bf16", "bf16_cl")
+VARIANTS = ("fp32", "fp32_cl", "bf16", "bf16_cl", "bf16_net", "bf16_net_cl")
 
 
 OVERLAPS = (0.75, 0.5)
@@ -56,7 +59,7 @@ def bench(
 ) -> dict:
     """``{variant: windows/s (median)}`` plus the per-repeat times, interleaved A, B, ...,
     the projection per variant and overlap, and (``e2e_pings > 0``) the pipeline's rate."""
-    from sss2bathy.data.cnn_normals import cpu_has_native_bf16
+    from sss2bathy.data.cnn_normals import cpu_has_native_bf16, inference_net
     from sss2bathy.models.normal_cnn import NormalResNet
 
     bad = [v for v in variants if v not in VARIANTS]
@@ -70,14 +73,20 @@ def bench(
     contiguous = NormalResNet(in_channels=1, base_width=base_width, n_blocks=n_blocks).eval()
     contiguous.load_state_dict(net.state_dict())
     nets[""] = contiguous
+    for fmt in ("", "cl"):  # the bfloat16 copies predict_waterfall runs
+        if "bf16_net" + (fmt and "_cl") in variants:
+            nets[f"net{fmt}"] = inference_net(nets[fmt], "cpu", "bf16")[0]
+            inputs[f"net{fmt}"] = inputs[fmt].to(torch.bfloat16)
 
     def run(variant: str) -> tuple[float, float]:
         fmt = "cl" if variant.endswith("_cl") else ""
-        low = variant.startswith("bf16")
+        if variant.startswith("bf16_net"):
+            fmt = "net" + fmt
+        autocast = variant in ("bf16", "bf16_cl")
         t0, c0 = time.perf_counter(), time.process_time()
         with (
             torch.inference_mode(),
-            torch.autocast("cpu", dtype=torch.bfloat16, enabled=low),
+            torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast),
         ):
             nets[fmt](inputs[fmt])
         return time.perf_counter() - t0, time.process_time() - c0
@@ -142,12 +151,14 @@ def pipeline(
     line = torch.randn(pings, 2, window[1], generator=rng).numpy()
     n_windows = 2 * len(line_windows(pings, window[1], window[0], window[1], 0.75))
     res: dict = {"pings": pings, "batch": batch, "windows": n_windows}
-    for precision in [v for v in ("fp32", "bf16") if v in variants]:
+    for precision in [v for v in ("fp32", "bf16") if v in variants or f"{v}_net" in variants]:
         t0 = time.perf_counter()
         predict_waterfall(net, line, window, 0.75, batch_size=batch, precision=precision)
         rate = n_windows / (time.perf_counter() - t0)
         res[f"{precision}_windows_per_s"] = rate
-        res[f"{precision}_ratio_to_forward"] = rate / forward_rate[precision]
+        bare = forward_rate.get(f"{precision}_net" if precision == "bf16" else precision)
+        if bare is not None:  # the bare forward pass of what predict_waterfall runs
+            res[f"{precision}_ratio_to_forward"] = rate / bare
     origins = line_windows(2000, window[1], window[0], window[1], 0.75)
     preds = torch.randn(len(origins), *window, generator=rng).numpy()
     t0 = time.perf_counter()

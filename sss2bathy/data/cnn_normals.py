@@ -38,7 +38,7 @@ recomputed with a warning.
 
 from __future__ import annotations
 
-import contextlib
+import copy
 import importlib
 import logging
 from collections.abc import Mapping, Sequence
@@ -242,10 +242,11 @@ def predict_waterfall(
         window: ``(window_pings, window_bins)``.
         overlap: fraction of a window shared with the next, in [0, 1).
         batch_size: windows per forward pass.
-        precision: ``"fp32"`` or ``"bf16"`` (``torch.autocast`` to bfloat16 on ``device``:
-            1.9x the windows/s of float32 on an AVX512-BF16 CPU for the paper network, but
-            ~170x slower on an AVX2-only CPU, where it is emulated: a warning says so;
-            ``benchmarks/cnn_inference.py``; n_lat changes by ~1e-2, see the README).
+        precision: ``"fp32"`` or ``"bf16"`` (a bfloat16 copy of ``net`` on bfloat16
+            windows, :func:`inference_net`: 2.5x the windows/s of float32 for the paper
+            network on an AMX CPU, but ~170x slower on an AVX2-only CPU, where it is
+            emulated: a warning says so; ``benchmarks/cnn_inference.py``; n_lat changes by
+            ~1e-2, see the README).
 
     Returns:
         ``(P, 2, B)`` float32 prediction for every bin (masking is the caller's).
@@ -265,6 +266,7 @@ def predict_waterfall(
     padded_shape = (max(n_pings, h), max(n_bins, w))
     origins = line_windows(padded_shape[0], padded_shape[1], h, w, overlap)
     out = np.empty((n_pings, 2, n_bins), dtype=np.float32)
+    run, dtype = inference_net(net, device, precision)
     for side in range(2):
         waterfall = np.zeros((n_channels, *padded_shape), dtype=np.float32)
         waterfall[:, :n_pings, :n_bins] = np.moveaxis(intensity[:, side], 1, 0)
@@ -273,26 +275,42 @@ def predict_waterfall(
         for start in range(0, len(origins), batch_size):
             o = origins[start : start + batch_size]
             windows = np.moveaxis(view[:, o[:, 0], o[:, 1]], 0, 1)  # (N, C, h, w)
-            batch = torch.from_numpy(np.ascontiguousarray(windows)).to(device)
-            with torch.inference_mode(), _autocast(batch.device, precision):
-                pred = net(batch)
+            batch = torch.from_numpy(np.ascontiguousarray(windows)).to(device, dtype)
+            with torch.inference_mode():
+                pred = run(batch)
             preds[start : start + len(o)] = pred[:, 0].float().cpu().numpy()
         mean, _ = stitch_windows(preds, origins, padded_shape)
         out[:, side] = mean[:n_pings, :n_bins]
     return out
 
 
-def _autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
-    if precision == "fp32":
-        return contextlib.nullcontext()
-    if device.type == "cpu" and precision == "bf16" and not cpu_has_native_bf16():
+def inference_net(
+    net: nn.Module, device: str | torch.device, precision: str
+) -> tuple[nn.Module, torch.dtype]:
+    """The network ``predict_waterfall`` runs for ``precision`` and the dtype of its
+    input windows: ``net`` itself for fp32; for bf16 a copy of ``net`` with bfloat16
+    parameters and buffers (``net`` is left as it is), run on bfloat16 windows.
+
+    A bfloat16 copy rather than ``torch.autocast``: autocast casts every convolution's
+    input and weights to bfloat16 on each call and leaves the normalisations' outputs in
+    float32, so a third of the paper network's time went to those casts (``aten::copy_``
+    in a profile); the copy gives the same convolutions in bfloat16 without them
+    (``benchmarks/cnn_inference.py``: variants ``bf16`` (autocast) and ``bf16_net``).
+    On a CPU without native bfloat16 a warning says it is emulated and far slower."""
+    check_precision(precision)
+    dtype = PRECISIONS[precision]
+    if dtype is None:
+        return net, torch.float32
+    dev = torch.device(device)
+    if dev.type == "cpu" and not cpu_has_native_bf16():
         log.warning(
             "precision=bf16 on a CPU without native bfloat16 (oneDNN: no AVX512-BF16/AMX; "
             "capability %s): emulated, ~170x SLOWER than fp32 for the paper network "
             "(benchmarks/cnn_inference.py); use fp32 on this machine",
             torch.backends.cpu.get_cpu_capability(),
         )
-    return torch.autocast(device_type=device.type, dtype=PRECISIONS[precision])
+    low = copy.deepcopy(net).to(device=dev, dtype=dtype).eval()
+    return low, dtype
 
 
 def cpu_has_native_bf16() -> bool:
@@ -489,6 +507,7 @@ def predict_normals(
     }
     if precision != "fp32":  # float32 keys stay those of earlier caches
         key_fields["precision"] = precision
+        key_fields["run"] = "cast copy"  # inference_net, not autocast (earlier bf16 caches)
     key = stable_hash(key_fields)
     cache_dir = Path(survey_dir) / "predictions" / key
     net: nn.Module | None = None

@@ -199,3 +199,26 @@ def test_cli_writes_report(tmp_path, capsys, monkeypatch):
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {stage_file}: expected JSON stage times")
+
+
+def test_cnn_inference_variants_and_projection():
+    """Every variant of the CNN inference benchmark runs at a tiny size; the projection is
+    the survey's windows over the measured rate; the pipeline's rate is compared with the
+    bare pass of what it runs (the bfloat16 copy for bf16)."""
+    from benchmarks import cnn_inference
+
+    out = cnn_inference.bench(
+        base_width=2, n_blocks=1, batch=2, window=(16, 64), repeats=1, e2e_pings=40,
+        e2e_batch=4,
+    )  # fmt: skip
+    assert set(out["windows_per_s"]) == set(cnn_inference.VARIANTS)
+    assert all(r > 0 and math.isfinite(r) for r in out["windows_per_s"].values())
+    n = out["survey_windows_12_lines_by_overlap"]
+    assert n["overlap_0.5"] < n["overlap_0.75"]
+    rate = out["windows_per_s"]["bf16_net"]
+    assert out["projected_min_12_lines"]["bf16_net_overlap_0.5"] == pytest.approx(
+        n["overlap_0.5"] / rate / 60
+    )
+    assert {"fp32_ratio_to_forward", "bf16_ratio_to_forward"} <= set(out["e2e"])
+    with pytest.raises(ValueError, match="variants: expected some of"):
+        cnn_inference.bench(base_width=2, n_blocks=1, variants=["fp16"])

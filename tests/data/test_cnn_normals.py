@@ -358,6 +358,12 @@ def test_bf16_inference_is_close_to_fp32_and_cached_apart(checkpoint, tmp_path):
     bf16 = predict_waterfall(net, intensity, (8, 16), 0.75, batch_size=4, precision="bf16")
     assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32)  # bf16 did run
     np.testing.assert_allclose(bf16, fp32, atol=0.03)  # bfloat16: 8-bit mantissa
+    # a bfloat16 copy ran; the caller's network is left in float32
+    assert all(p.dtype == torch.float32 for p in net.parameters())
+    low, dtype = cnn_normals.inference_net(net, "cpu", "bf16")
+    assert dtype == torch.bfloat16 and low is not net
+    assert all(p.dtype == torch.bfloat16 for p in low.parameters()) and not low.training
+    assert cnn_normals.inference_net(net, "cpu", "fp32") == (net, torch.float32)
     with pytest.raises(ValueError, match=r"precision: expected one of \['fp32', 'bf16'\]"):
         predict_waterfall(net, intensity, (8, 16), 0.75, precision="fp16")
 
