@@ -56,6 +56,29 @@ _SIDES = np.array([0, 1])
 # line (results independent of pings_per_chunk).
 DRAPE_ALGORITHM_VERSION = 2
 
+# The bookkeeping after the fans' cast: "numba" (compiled kernels, :mod:`.kernels`; the
+# default where numba imports) or "numpy" (the vectorised reference, same results).
+BOOKKEEPING = "numba"
+_numba_ok: bool | None = None
+
+
+def _use_numba() -> bool:
+    """Whether to run the compiled bookkeeping (``BOOKKEEPING``, and numba importable)."""
+    global _numba_ok
+    if BOOKKEEPING == "numpy":
+        return False
+    if BOOKKEEPING != "numba":
+        raise ValueError(f"BOOKKEEPING: expected 'numba' or 'numpy', found {BOOKKEEPING!r}")
+    if _numba_ok is None:
+        try:
+            from sss2bathy.draping import kernels  # noqa: F401
+        except ImportError as exc:  # numba missing or broken: the numpy reference
+            log.warning("draping without numba (%s): numpy bookkeeping, slower", exc)
+            _numba_ok = False
+        else:
+            _numba_ok = True
+    return _numba_ok
+
 
 def as_surface(surface: Any, engine: str = "auto") -> DrapeSurface:
     """A :class:`DrapeSurface` from a ``BathyGrid``, a ``trimesh.Trimesh`` or itself."""
@@ -258,7 +281,6 @@ def _drape_chunk(
     ``out`` must arrive NaN-filled (floats) and zero (mask). Fans (ping, head) are
     flattened into one axis of length ``K = 2 n``; rays into a flat axis of ``K M``.
     """
-    B = len(range_m)
     theta = fan.angles(sl)
     n, M = theta.shape[0], theta.shape[-1]
     K = 2 * n
@@ -275,6 +297,99 @@ def _drape_chunk(
     tri, rho = tri.reshape(K, M), rho.reshape(K, M)
     # The ranges (float32) only bracket bins between rays and detect occlusions; each
     # bin's hit is then solved exactly on a face plane, in float64.
+    post = _post_cast_numba if _use_numba() else _post_cast_numpy
+    post(surf, theta, tri, rho, u, v, s, range_m, bin_step, bin_index, sensor, cfg, out)
+
+
+def _post_cast_numba(
+    surf: DrapeSurface,
+    theta: np.ndarray,
+    tri: np.ndarray,
+    rho: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    s: np.ndarray,
+    range_m: np.ndarray,
+    bin_step: float,
+    bin_index: _BinIndex,
+    sensor: SensorParams,
+    cfg: DrapeConfig,
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> None:
+    """The bookkeeping after the fans' cast in compiled kernels (:mod:`.kernels`), one
+    loop over fans, pairs and bins; the middle rays are cast here, with embree."""
+    from sss2bathy.draping import kernels
+
+    K, M = rho.shape
+    B = len(range_m)
+    real = rho.dtype.type  # float32 from embree: the numpy reference's precision
+    uniform = bin_index.uniform
+    r0 = real(bin_index.r0) if uniform else real(0.0)
+    inv_step = real(1.0 / bin_index.step) if uniform else real(0.0)
+    kbin, k_c, j_c, t_check = kernels.fan_brackets(
+        theta, tri, rho, range_m, uniform, r0, inv_step, real(cfg.jump_check_bins * bin_step)
+    )
+    d_mid = np.cos(t_check)[:, None] * u[k_c] + np.sin(t_check)[:, None] * v[k_c]
+    _, rho_mid = surf.cast(s[k_c], d_mid.astype(np.float32), distances=True)
+    grad = surf._grad if surf.grid is not None else None
+    if grad is None:
+        grad, x0, y0, cell = np.zeros((0, 0, 2), np.float32), 0.0, 0.0, 1.0
+    else:
+        x0, y0, cell = float(surf.grid.x0), float(surf.grid.y0), float(surf.grid.cell_size)
+    th_min, th_max = sensor.beam_limits_rad
+    pts_out, nlat_out, graz_out, mask_out = out
+    kernels.drape_fans(
+        theta,
+        tri,
+        rho,
+        kbin,
+        k_c,
+        j_c,
+        rho_mid.astype(rho.dtype, copy=False),
+        u,
+        v,
+        s,
+        range_m,
+        real(cfg.jump_tolerance),
+        surf.face_planes,
+        float(th_min),
+        float(th_max),
+        grad,
+        x0,
+        y0,
+        cell,
+        surf.face_normals,
+        grad.size > 0,
+        pts_out.reshape(K, B, 3),
+        nlat_out.reshape(K, B),
+        graz_out.reshape(K, B),
+        mask_out.reshape(K, B),
+        MASK_NO_HIT,
+        MASK_WATER_COLUMN,
+        MASK_SHADOW,
+        MASK_OUT_OF_BEAM,
+    )
+
+
+def _post_cast_numpy(
+    surf: DrapeSurface,
+    theta: np.ndarray,
+    tri: np.ndarray,
+    rho: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    s: np.ndarray,
+    range_m: np.ndarray,
+    bin_step: float,
+    bin_index: _BinIndex,
+    sensor: SensorParams,
+    cfg: DrapeConfig,
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> None:
+    """The bookkeeping after the fans' cast, vectorised with numpy (the reference of the
+    compiled kernels; ``BOOKKEEPING = "numpy"``)."""
+    K, M = rho.shape
+    B = len(range_m)
     kbin = bin_index(rho)  # (K, M) number of bins nearer than each first hit
 
     # --- segments between neighbouring rays; occlusion jumps checked with a middle ray

@@ -1,0 +1,348 @@
+"""Compiled (numba) bookkeeping of draping: everything after the fans are cast.
+
+:func:`sss2bathy.draping.drape._drape_chunk` casts the fans with embree, then calls
+:func:`fan_brackets` (bin counts of the first hits and the ray pairs to check for an
+occlusion), casts the middle rays of those pairs with embree, and calls
+:func:`drape_fans`, which loops over fans (ping, head), their ray pairs and bins and
+writes points, ``n_lat``, grazing angles and masks. No large temporaries: per fan a few
+arrays of one fan's rays or bins, reused.
+
+The arithmetic repeats the numpy reference (``_drape_chunk_numpy`` in ``drape.py``)
+operation by operation, in the same precision (float32 where it is float32 there, the
+same summation order as ``np.einsum``'s), so results agree to the last bit up to the
+libm functions (``cos``, ``sin``, ``atan2``, ``hypot``, ``acos``) numpy and LLVM call.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# IEEE semantics: x / 0 -> inf / NaN like numpy, no ZeroDivisionError
+_JIT = {"cache": True, "error_model": "numpy", "nogil": True}
+
+
+@njit(**_JIT)
+def _bin_count(x, range_m, uniform, r0, inv_step):  # pragma: no cover - compiled
+    """``_BinIndex`` of one float32 range: bins with range below ``x`` (0 for NaN)."""
+    B = range_m.shape[0]
+    if x != x:
+        return 0
+    if uniform:
+        k = (x - r0) * inv_step  # in x's precision (r0, inv_step of x's dtype), as numpy
+        k = np.ceil(k)
+        if k < 0:
+            return 0
+        if k > B:
+            return B
+        return int(k)
+    xd = np.float64(x)
+    lo, hi = 0, B  # first index with range_m >= x (searchsorted, side="left")
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if range_m[mid] < xd:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(**_JIT)
+def fan_brackets(theta, tri, rho, range_m, uniform, r0, inv_step, jump_thr):  # pragma: no cover
+    """Bin counts of the first hits and the ray pairs to check for an occlusion.
+
+    Args:
+        theta, tri, rho: ``(K, M)`` fan angles (float32), first-hit faces and ranges
+            (float32, NaN = miss).
+        range_m: ``(B,)`` bin ranges; ``uniform``, ``r0``, ``inv_step`` (float32): the
+            arithmetic bin index of ``_BinIndex`` where bins are uniform.
+        jump_thr: float32 range jump above which a pair of rays hitting different faces
+            is checked with a middle ray (``rho``'s dtype, like ``r0`` and ``inv_step``).
+
+    Returns:
+        ``kbin (K, M) int32``; the checked pairs' fan ``k_c`` and first ray ``j_c``
+        (int64, in fan then ray order) and their middle angle ``t_check`` (float32).
+    """
+    K, M = rho.shape
+    kbin = np.empty((K, M), np.int32)
+    n_max = K * (M - 1)
+    k_c = np.empty(n_max, np.int64)
+    j_c = np.empty(n_max, np.int64)
+    t_check = np.empty(n_max, np.float32)
+    half = np.float32(0.5)
+    n = 0
+    for k in range(K):
+        for j in range(M):
+            kbin[k, j] = _bin_count(rho[k, j], range_m, uniform, r0, inv_step)
+        for j in range(M - 1):
+            dr = abs(rho[k, j + 1] - rho[k, j])
+            if dr > jump_thr and tri[k, j] != tri[k, j + 1]:
+                k_c[n] = k
+                j_c[n] = j
+                t_check[n] = half * (theta[k, j] + theta[k, j + 1])
+                n += 1
+    return kbin, k_c[:n], j_c[:n], t_check[:n]
+
+
+@njit(**_JIT)
+def _offer_roots(A, Bc, C, r, theta_ref, t_mid, t_half, best):  # pragma: no cover
+    """``_Roots.update`` for one pair: offer a face's two arc/plane roots.
+
+    ``best = [t, d, y, z]`` (float64, updated in place). Returns whether a root won.
+    """
+    k2 = A * A + Bc * Bc
+    w = np.sqrt(r * r * k2 - C * C)  # NaN where no root
+    inv = 1.0 / k2
+    ca, cb, wa, wb = C * A, C * Bc, w * A, w * Bc
+    won = False
+    for sign in range(2):
+        if sign == 0:
+            y = (ca - wb) * inv
+            z = (cb + wa) * inv
+        else:
+            y = (ca + wb) * inv
+            z = (cb - wa) * inv
+        t = math.atan2(z, y)
+        d = abs(t - theta_ref)
+        if d < best[1] and abs(t - t_mid) <= t_half:
+            best[0], best[1], best[2], best[3] = t, d, y, z
+            won = True
+    return won
+
+
+@njit(**_JIT)
+def _arc_abc(plane, u, v, s):  # pragma: no cover - compiled
+    """``[A, B, C]`` of ``_arc_coefficients`` for one face plane ``[n, offset]``:
+    ``np.einsum("qi,qji->qj")`` with rows ``[u, 0], [v, 0], [-s, 1]``, summed in
+    einsum's order ``(x0 + x2) + (x1 + x3)``."""
+    n0, n1, n2, off = plane[0], plane[1], plane[2], plane[3]
+    A = (n0 * u[0] + n2 * u[2]) + (n1 * u[1] + off * 0.0)
+    Bc = (n0 * v[0] + n2 * v[2]) + (n1 * v[1] + off * 0.0)
+    C = (n0 * -s[0] + n2 * -s[2]) + (n1 * -s[1] + off * 1.0)
+    return A, Bc, C
+
+
+@njit(**_JIT)
+def _bilinear(grad, iy, ix, q, tx, ty):  # pragma: no cover - compiled
+    """Component ``q`` of the gradient at cell ``(iy, ix)``, weights ``(tx, ty)``, in
+    ``DrapeSurface.grid_gradient_at``'s order of operations (float64)."""
+    h0 = np.float64(grad[iy, ix, q])
+    h1 = np.float64(grad[iy, ix + 1, q])
+    h2 = np.float64(grad[iy + 1, ix, q])
+    h3 = np.float64(grad[iy + 1, ix + 1, q])
+    lower = (h1 - h0) * tx + h0
+    upper = (h3 - h2) * tx + h2
+    return lower + (upper - lower) * ty
+
+
+@njit(**_JIT)
+def _nan_last_ge(a, b):  # pragma: no cover - compiled
+    """``a >= b`` in numpy's sort order (NaN largest)."""
+    if a != a:
+        return True
+    if b != b:
+        return False
+    return a >= b
+
+
+@njit(**_JIT)
+def drape_fans(
+    theta,
+    tri,
+    rho,
+    kbin,
+    k_c,
+    j_c,
+    rho_mid,
+    u,
+    v,
+    s,
+    range_m,
+    jump_tol,
+    face_planes,
+    th_min,
+    th_max,
+    grad,
+    grid_x0,
+    grid_y0,
+    cell,
+    face_normals,
+    use_grid,
+    pts_out,
+    nlat_out,
+    graz_out,
+    mask_out,
+    mask_no_hit,
+    mask_water,
+    mask_shadow,
+    mask_oob,
+):  # pragma: no cover - compiled
+    """Match bins to ray pairs, solve exact hits, resolve layover, write the outputs.
+
+    Args:
+        theta, tri, rho, kbin: ``(K, M)`` fans from the cast and :func:`fan_brackets`.
+        k_c, j_c, rho_mid: the checked pairs and their middle ray's range (NaN = miss).
+        u, v, s: ``(K, 3)`` head-plane axes and sonar position of each fan (float64).
+        range_m: ``(B,)`` bin ranges (float64). jump_tol: float32 jump tolerance.
+        face_planes: ``(F + 1, 4)`` planes (last row NaN). th_min, th_max: the beam.
+        grad, grid_x0, grid_y0, cell: the grid's ``(ny, nx, 2)`` float32 gradient and
+            geometry (``use_grid``), else ``face_normals (F, 3)`` give the normals.
+        pts_out, nlat_out, graz_out, mask_out: ``(K, B, 3)``, ``(K, B)`` outputs, NaN
+            (floats) and zero (mask) on entry.
+    """
+    K, M = rho.shape
+    B = range_m.shape[0]
+    ny, nx = grad.shape[0], grad.shape[1]
+    half = np.float32(0.5)
+    best = np.empty(4)
+    jump = np.zeros(M, np.bool_)
+    cover = np.zeros(B + 1, np.int32)
+    has = np.zeros(B, np.bool_)
+    w_inb = np.zeros(B, np.bool_)
+    w_str = np.empty(B)
+    w_y = np.empty(B)
+    w_z = np.empty(B)
+    w_tri = np.empty(B, np.int64)
+    c = 0  # next checked pair
+    n_checks = k_c.shape[0]
+    for k in range(K):
+        uk, vk, sk = u[k], v[k], s[k]
+        # --- occlusion jumps among the checked pairs of this fan; their shadow cover
+        jump[:] = False
+        cover[:] = 0
+        any_jump = False
+        while c < n_checks and k_c[c] == k:
+            j = j_c[c]
+            ra, rb = rho[k, j], rho[k, j + 1]
+            dr = abs(rb - ra)
+            lin_mid = half * (ra + rb)
+            rm = rho_mid[c]
+            if rm != rm or abs(rm - lin_mid) > jump_tol * dr:
+                jump[j] = True
+                any_jump = True
+                k0, k1 = kbin[k, j], kbin[k, j + 1]
+                cover[min(k0, k1)] += 1
+                cover[max(k0, k1)] -= 1
+            c += 1
+        # --- every (pair, bin) crossing; per bin the winner so far
+        has[:] = False
+        for j in range(M - 1):
+            ra32, rb32 = rho[k, j], rho[k, j + 1]
+            if ra32 != ra32 or rb32 != rb32 or jump[j]:
+                continue
+            ka, kb = kbin[k, j], kbin[k, j + 1]
+            if ka == kb:
+                continue
+            ra, rb = np.float64(ra32), np.float64(rb32)
+            ta, tb = np.float64(theta[k, j]), np.float64(theta[k, j + 1])
+            tri_a, tri_b = tri[k, j], tri[k, j + 1]
+            strength = abs(tb - ta) / abs(rb - ra)
+            t_mid = 0.5 * (ta + tb)
+            t_half = 0.55 * abs(tb - ta) + 1e-12
+            Aa, Ba, Ca = _arc_abc(face_planes[tri_a], uk, vk, sk)
+            if tri_a != tri_b:
+                Ab, Bb, Cb = _arc_abc(face_planes[tri_b], uk, vk, sk)
+            else:
+                Ab, Bb, Cb = Aa, Ba, Ca
+            for b in range(min(ka, kb), max(ka, kb)):
+                r = range_m[b]
+                theta_lin = ta + (r - ra) / (rb - ra) * (tb - ta)
+                best[0], best[1], best[2], best[3] = 0.0, np.inf, 0.0, 0.0
+                _offer_roots(Aa, Ba, Ca, r, theta_lin, t_mid, t_half, best)
+                from_b = False
+                if tri_a != tri_b:
+                    from_b = _offer_roots(Ab, Bb, Cb, r, theta_lin, t_mid, t_half, best)
+                if best[1] < np.inf:
+                    theta_hit, y, z = best[0], best[2], best[3]
+                else:  # no root in the bracket: the interpolated angle
+                    theta_hit = theta_lin
+                    y = r * math.cos(theta_lin)
+                    z = r * math.sin(theta_lin)
+                    from_b = abs(ra - r) > abs(rb - r)  # the nearer ray's face
+                in_beam = theta_hit >= th_min and theta_hit <= th_max
+                # layover: the last by (in_beam, strength, position in the fan) wins
+                if has[b]:
+                    if w_inb[b] and not in_beam:
+                        continue
+                    if in_beam == w_inb[b] and not _nan_last_ge(strength, w_str[b]):
+                        continue
+                has[b] = True
+                w_inb[b] = in_beam
+                w_str[b] = strength
+                w_y[b] = y
+                w_z[b] = z
+                w_tri[b] = tri_b if from_b else tri_a
+        # --- the winners' points, normals (eq. 1-3) and grazing angles; the masks
+        nearest = np.nan  # fmin over the fan's first hits
+        for j in range(M):
+            x = rho[k, j]
+            if x == x and (nearest != nearest or x < nearest):
+                nearest = x
+        nearest64 = np.float64(nearest)
+        shadow_count = 0
+        for b in range(B):
+            if any_jump:
+                shadow_count += cover[b]
+            if has[b]:
+                y, z = w_y[b], w_z[b]
+                p0 = (y * uk[0] + z * vk[0]) - -sk[0]
+                p1 = (y * uk[1] + z * vk[1]) - -sk[1]
+                p2 = (y * uk[2] + z * vk[2]) - -sk[2]
+                if use_grid:
+                    fx = (p0 - grid_x0) / cell
+                    fy = (p1 - grid_y0) / cell
+                    if fx >= 0 and fx <= nx - 1 and fy >= 0 and fy <= ny - 1:
+                        cx = min(max(np.floor(fx), 0.0), nx - 2.0)
+                        cy = min(max(np.floor(fy), 0.0), ny - 2.0)
+                        tx, ty = fx - cx, fy - cy
+                        ix, iy = int(cx), int(cy)
+                        gx = _bilinear(grad, iy, ix, 0, tx, ty)
+                        gy = _bilinear(grad, iy, ix, 1, tx, ty)
+                    else:
+                        gx, gy = np.nan, np.nan
+                    un = (uk[2] - uk[0] * gx) - uk[1] * gy
+                    vn = (vk[2] - vk[0] * gx) - vk[1] * gy
+                    normal_len = np.sqrt((1.0 + gx * gx) + gy * gy)
+                else:
+                    fn = face_normals[w_tri[b]]
+                    n0, n1, n2 = fn[0], fn[1], fn[2]
+                    d0, d1, d2 = sk[0] - p0, sk[1] - p1, sk[2] - p2
+                    if (n0 * d0 + n2 * d2) + n1 * d1 < 0:
+                        n0, n1, n2 = n0 * -1.0, n1 * -1.0, n2 * -1.0
+                    nn = (n0 * n0 + n2 * n2) + n1 * n1
+                    if nn == 0:
+                        n0, n1, n2 = np.nan, np.nan, np.nan
+                        nn = np.nan
+                    un = (uk[0] * n0 + uk[2] * n2) + uk[1] * n1
+                    vn = (vk[0] * n0 + vk[2] * n2) + vk[1] * n1
+                    normal_len = np.sqrt(nn)
+                norm = np.sqrt(un * un + vn * vn)
+                if norm < 1e-12:
+                    norm = 1e-12
+                nlat = un / norm
+                if math.isfinite(nlat):  # a normal: the bin is matched
+                    den = normal_len * math.hypot(y, z)
+                    if den < 1e-12:
+                        den = 1e-12
+                    cos_inc = -(y * un + z * vn) / den
+                    if cos_inc < -1.0:
+                        cos_inc = -1.0
+                    elif cos_inc > 1.0:
+                        cos_inc = 1.0
+                    pts_out[k, b, 0] = p0
+                    pts_out[k, b, 1] = p1
+                    pts_out[k, b, 2] = p2
+                    nlat_out[k, b] = nlat
+                    graz_out[k, b] = np.pi / 2 - math.acos(cos_inc)
+                    if not w_inb[b]:
+                        mask_out[k, b] = mask_oob
+                    continue
+            # unmatched: water column, shadow of an occlusion, or no hit
+            if range_m[b] < nearest64:
+                mask_out[k, b] = mask_water
+            elif shadow_count > 0:
+                mask_out[k, b] = mask_shadow
+            else:
+                mask_out[k, b] = mask_no_hit
