@@ -136,7 +136,8 @@ def drape_line(line: SidescanLine, surface: Any, cfg: DrapeConfig | Any = None) 
             cfg,
             (points[sl], n_lat[sl], grazing[sl], mask[sl]),
         )
-    log.debug("draped line '%s': %s", line.name, mask_reason_counts(mask))
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("draped line '%s': %s", line.name, mask_reason_counts(mask))
     return DrapedLine(points=points, n_lat=n_lat, grazing_rad=grazing, mask=mask)
 
 
@@ -224,7 +225,12 @@ class _Fan:
         np.clip(tail, -1.0, 1.0, out=tail)
         np.arccos(tail, out=tail)
         np.subtract(theta_down[..., None], tail, out=tail)  # ... and their angles
-        out.sort(axis=-1)
+        if _use_numba():  # the same sorted values, merging the two monotonic parts
+            from sss2bathy.draping import kernels
+
+            kernels.sort_fans(out.reshape(-1, self.n_rays), self.n_uniform)
+        else:
+            out.sort(axis=-1)
         return out
 
 
@@ -298,12 +304,13 @@ def _drape_chunk(
     # The ranges (float32) only bracket bins between rays and detect occlusions; each
     # bin's hit is then solved exactly on a face plane, in float64.
     post = _post_cast_numba if _use_numba() else _post_cast_numpy
-    post(surf, theta, tri, rho, u, v, s, range_m, bin_step, bin_index, sensor, cfg, out)
+    post(surf, theta, cs, tri, rho, u, v, s, range_m, bin_step, bin_index, sensor, cfg, out)
 
 
 def _post_cast_numba(
     surf: DrapeSurface,
     theta: np.ndarray,
+    cs: np.ndarray,
     tri: np.ndarray,
     rho: np.ndarray,
     u: np.ndarray,
@@ -352,6 +359,7 @@ def _post_cast_numba(
         range_m,
         real(cfg.jump_tolerance),
         surf.face_planes,
+        cs,
         float(th_min),
         float(th_max),
         grad,
@@ -374,6 +382,7 @@ def _post_cast_numba(
 def _post_cast_numpy(
     surf: DrapeSurface,
     theta: np.ndarray,
+    cs: np.ndarray,
     tri: np.ndarray,
     rho: np.ndarray,
     u: np.ndarray,

@@ -86,38 +86,34 @@ def fan_brackets(theta, tri, rho, range_m, uniform, r0, inv_step, jump_thr):  # 
     return kbin, k_c[:n], j_c[:n], t_check[:n]
 
 
-@njit(**_JIT)
-def _offer_roots(A, Bc, C, r, theta_ref, t_mid, t_half, best):  # pragma: no cover
-    """``_Roots.update`` for one pair: offer a face's two arc/plane roots.
-
-    ``best = [t, d, y, z]`` (float64, updated in place). Returns whether a root won.
-    """
-    k2 = A * A + Bc * Bc
-    w = np.sqrt(r * r * k2 - C * C)  # NaN where no root
-    inv = 1.0 / k2
-    ca, cb, wa, wb = C * A, C * Bc, w * A, w * Bc
-    won = False
-    for sign in range(2):
-        if sign == 0:
-            y = (ca - wb) * inv
-            z = (cb + wa) * inv
-        else:
-            y = (ca + wb) * inv
-            z = (cb - wa) * inv
-        t = math.atan2(z, y)
-        d = abs(t - theta_ref)
-        if d < best[1] and abs(t - t_mid) <= t_half:
-            best[0], best[1], best[2], best[3] = t, d, y, z
-            won = True
-    return won
+# Roots whose angle the fast path below only approximates (error < 1e-6 rad: the first
+# ray's float32 direction, < 4e-7 rad, and a 9th-order arctangent) decide only where
+# they are this far from every threshold; nearer, the exact ``atan2`` decides.
+_EPS_T = 1e-5
+_INLINE = {**_JIT, "inline": "always"}
 
 
-@njit(**_JIT)
-def _arc_abc(plane, u, v, s):  # pragma: no cover - compiled
-    """``[A, B, C]`` of ``_arc_coefficients`` for one face plane ``[n, offset]``:
+@njit(**_INLINE)
+def _root_angle(y, z, ca0, sa0, ta):  # pragma: no cover - compiled
+    """``(t, exact)``: the angle of ``(y, z)``, within ``_EPS_T`` of ``atan2(z, y)``
+    (``exact`` False), from ``ta`` + the arctangent of its small angle to the first
+    ray's direction ``(ca0, sa0)``; exactly (``atan2``) where that angle is not small."""
+    dot = y * ca0 + z * sa0
+    cross = ca0 * z - sa0 * y
+    if dot > 0.0 and abs(cross) <= 0.1 * dot and abs(ta) < 3.0:
+        x = cross / dot
+        x2 = x * x
+        t = ta + x * (1.0 - x2 * (1.0 / 3.0 - x2 * (0.2 - x2 * (1.0 / 7.0 - x2 / 9.0))))
+        return t, False
+    return math.atan2(z, y), True
+
+
+@njit(**_INLINE)
+def _arc_abc(face_planes, f, u, v, s):  # pragma: no cover - compiled
+    """``[A, B, C]`` of ``_arc_coefficients`` for face ``f`` (plane ``[n, offset]``):
     ``np.einsum("qi,qji->qj")`` with rows ``[u, 0], [v, 0], [-s, 1]``, summed in
     einsum's order ``(x0 + x2) + (x1 + x3)``."""
-    n0, n1, n2, off = plane[0], plane[1], plane[2], plane[3]
+    n0, n1, n2, off = face_planes[f, 0], face_planes[f, 1], face_planes[f, 2], face_planes[f, 3]
     A = (n0 * u[0] + n2 * u[2]) + (n1 * u[1] + off * 0.0)
     Bc = (n0 * v[0] + n2 * v[2]) + (n1 * v[1] + off * 0.0)
     C = (n0 * -s[0] + n2 * -s[2]) + (n1 * -s[1] + off * 1.0)
@@ -162,6 +158,7 @@ def drape_fans(
     range_m,
     jump_tol,
     face_planes,
+    cs,
     th_min,
     th_max,
     grad,
@@ -186,7 +183,8 @@ def drape_fans(
         k_c, j_c, rho_mid: the checked pairs and their middle ray's range (NaN = miss).
         u, v, s: ``(K, 3)`` head-plane axes and sonar position of each fan (float64).
         range_m: ``(B,)`` bin ranges (float64). jump_tol: float32 jump tolerance.
-        face_planes: ``(F + 1, 4)`` planes (last row NaN). th_min, th_max: the beam.
+        face_planes: ``(F + 1, 4)`` planes (last row NaN). cs: ``(K, M, 2)`` cos and
+            sin of ``theta`` (float32, as cast). th_min, th_max: the beam.
         grad, grid_x0, grid_y0, cell: the grid's ``(ny, nx, 2)`` float32 gradient and
             geometry (``use_grid``), else ``face_normals (F, 3)`` give the normals.
         pts_out, nlat_out, graz_out, mask_out: ``(K, B, 3)``, ``(K, B)`` outputs, NaN
@@ -196,7 +194,7 @@ def drape_fans(
     B = range_m.shape[0]
     ny, nx = grad.shape[0], grad.shape[1]
     half = np.float32(0.5)
-    best = np.empty(4)
+    fc = np.empty((2, 7))  # per face of a pair: A, B, A^2 + B^2, C^2, 1 / k2, C A, C B
     jump = np.zeros(M, np.bool_)
     cover = np.zeros(B + 1, np.int32)
     has = np.zeros(B, np.bool_)
@@ -241,21 +239,71 @@ def drape_fans(
             strength = abs(tb - ta) / abs(rb - ra)
             t_mid = 0.5 * (ta + tb)
             t_half = 0.55 * abs(tb - ta) + 1e-12
-            Aa, Ba, Ca = _arc_abc(face_planes[tri_a], uk, vk, sk)
-            if tri_a != tri_b:
-                Ab, Bb, Cb = _arc_abc(face_planes[tri_b], uk, vk, sk)
+            # the first ray's direction: roots more than 90 degrees away cannot lie in a
+            # bracket narrower than 1 rad (|t - t_mid| > pi / 2 - 0.5 - 1e-6 > t_half)
+            if abs(tb - ta) < 1.0:
+                ca0, sa0 = np.float64(cs[k, j, 0]), np.float64(cs[k, j, 1])
             else:
-                Ab, Bb, Cb = Aa, Ba, Ca
+                ca0, sa0 = 0.0, 0.0
+            n_faces = 2 if tri_a != tri_b else 1
+            for f in range(n_faces):  # per face: _Roots.update's terms that skip r
+                A, Bc, C = _arc_abc(face_planes, tri_a if f == 0 else tri_b, uk, vk, sk)
+                k2 = A * A + Bc * Bc
+                fc[f, 0], fc[f, 1], fc[f, 2], fc[f, 3] = A, Bc, k2, C * C
+                fc[f, 4], fc[f, 5], fc[f, 6] = 1.0 / k2, C * A, C * Bc
             for b in range(min(ka, kb), max(ka, kb)):
                 r = range_m[b]
                 theta_lin = ta + (r - ra) / (rb - ra) * (tb - ta)
-                best[0], best[1], best[2], best[3] = 0.0, np.inf, 0.0, 0.0
-                _offer_roots(Aa, Ba, Ca, r, theta_lin, t_mid, t_half, best)
-                from_b = False
-                if tri_a != tri_b:
-                    from_b = _offer_roots(Ab, Bb, Cb, r, theta_lin, t_mid, t_half, best)
-                if best[1] < np.inf:
-                    theta_hit, y, z = best[0], best[2], best[3]
+                # _Roots.update, face a's two roots then face b's: the root nearest
+                # theta_lin within t_mid +- t_half, the first of equals
+                found, from_b = False, False
+                bt, bd, by, bz, bexact = 0.0, np.inf, 0.0, 0.0, True
+                for f in range(n_faces):
+                    A, Bc, k2, cc = fc[f, 0], fc[f, 1], fc[f, 2], fc[f, 3]
+                    inv, ca, cb = fc[f, 4], fc[f, 5], fc[f, 6]
+                    w = np.sqrt(r * r * k2 - cc)  # NaN where no root
+                    wa, wb = w * A, w * Bc
+                    for sign in range(2):
+                        if sign == 0:
+                            y = (ca - wb) * inv
+                            z = (cb + wa) * inv
+                        else:
+                            y = (ca + wb) * inv
+                            z = (cb - wa) * inv
+                        if y * ca0 + z * sa0 < 0.0:
+                            continue  # far outside the bracket
+                        t, exact = _root_angle(y, z, ca0, sa0, ta)
+                        e = 0.0 if exact else _EPS_T
+                        dm = abs(t - t_mid)
+                        if not dm <= t_half + e:  # (NaN: no root)
+                            continue
+                        if not exact and dm > t_half - e:
+                            t, exact, e = math.atan2(z, y), True, 0.0
+                            if not abs(t - t_mid) <= t_half:
+                                continue
+                        d = abs(t - theta_lin)
+                        if found:
+                            eb = 0.0 if bexact else _EPS_T
+                            if not d + e < bd - eb:  # not surely nearer
+                                if d - e >= bd + eb:
+                                    continue  # surely not nearer
+                                if not exact:
+                                    t, exact = math.atan2(z, y), True
+                                    d = abs(t - theta_lin)
+                                if not bexact:
+                                    bt, bexact = math.atan2(bz, by), True
+                                    bd = abs(bt - theta_lin)
+                                if not d < bd:
+                                    continue
+                        found = True
+                        from_b = f == 1
+                        bt, bd, by, bz, bexact = t, d, y, z, exact
+                if found:
+                    y, z = by, bz
+                    # in the beam: decided by the exact angle where it is near a limit
+                    if not bexact and (abs(bt - th_min) <= _EPS_T or abs(bt - th_max) <= _EPS_T):
+                        bt = math.atan2(bz, by)
+                    theta_hit = bt
                 else:  # no root in the bracket: the interpolated angle
                     theta_hit = theta_lin
                     y = r * math.cos(theta_lin)
@@ -346,3 +394,32 @@ def drape_fans(
                 mask_out[k, b] = mask_shadow
             else:
                 mask_out[k, b] = mask_no_hit
+
+
+@njit(**_JIT)
+def sort_fans(fans, n_first):  # pragma: no cover - compiled
+    """Sort each row of ``fans (K, M)`` in place, as ``np.sort``: by merging its first
+    ``n_first`` values (ascending) with the rest (descending), else (a row not so
+    ordered) by sorting it."""
+    K, M = fans.shape
+    row = np.empty(M, fans.dtype)
+    for k in range(K):
+        ordered = True
+        for i in range(1, n_first):
+            if not fans[k, i - 1] <= fans[k, i]:
+                ordered = False
+        for i in range(n_first + 1, M):
+            if not fans[k, i - 1] >= fans[k, i]:
+                ordered = False
+        if not ordered:
+            fans[k] = np.sort(fans[k])
+            continue
+        i, j = 0, M - 1  # next of the ascending part; next (from the end) of the other
+        for q in range(M):
+            if j < n_first or (i < n_first and fans[k, i] <= fans[k, j]):
+                row[q] = fans[k, i]
+                i += 1
+            else:
+                row[q] = fans[k, j]
+                j -= 1
+        fans[k] = row
