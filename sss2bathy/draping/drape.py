@@ -17,11 +17,16 @@ mesh, or a no-data hole). A crossing outside the vertical beam gives OUT_OF_BEAM
 and normal kept). Where several crossings share a bin (layover), the in-beam one with the
 largest angular extent per metre of range (the strongest echo) wins.
 
-Vectorised over pings, heads, rays and bins; the only Python loop is over ping chunks,
-whose size (``pings_per_chunk``) trades speed against memory and does not change results.
-Chunks of ~16 pings keep every temporary small (cache-resident, and reused by glibc's
-allocator instead of being mapped and page-faulted anew): on the draping benchmark the
-non-embree time was ~35 % lower than with 256-ping chunks (default allocator settings).
+The only Python loop is over ping chunks, whose size (``pings_per_chunk``) trades speed
+against memory and does not change results. Per chunk the fans are built and cast with
+numpy and embree; the bookkeeping after the cast (brackets, occlusion checks, exact
+roots, layover, normals, grazing angles, masks) runs in compiled numba kernels
+(:mod:`sss2bathy.draping.kernels`, ``BOOKKEEPING = "numba"``, one loop over fans, pairs
+and bins) that give the same bits as the vectorised numpy version kept as their reference
+(``BOOKKEEPING = "numpy"``, also the fallback without numba). On the draping benchmark
+the kernels cut the non-embree time about 4-fold; what is left is mostly libm
+(``atan2``, ``acos``, ``hypot``), the numpy fan set-up before the cast and embreex's
+full-output call (primitive ids and distances cost ~8 % more than ids alone).
 """
 
 from __future__ import annotations
@@ -303,7 +308,10 @@ def _drape_chunk(
     tri, rho = tri.reshape(K, M), rho.reshape(K, M)
     # The ranges (float32) only bracket bins between rays and detect occlusions; each
     # bin's hit is then solved exactly on a face plane, in float64.
-    post = _post_cast_numba if _use_numba() else _post_cast_numpy
+    # (the kernels are compiled for embree's float32 ranges and int32 faces; the slow
+    # triangle reference engine's float64 plane distances keep the numpy bookkeeping)
+    compiled = rho.dtype == np.float32 and tri.dtype == np.int32 and _use_numba()
+    post = _post_cast_numba if compiled else _post_cast_numpy
     post(surf, theta, cs, tri, rho, u, v, s, range_m, bin_step, bin_index, sensor, cfg, out)
 
 
@@ -329,7 +337,7 @@ def _post_cast_numba(
 
     K, M = rho.shape
     B = len(range_m)
-    real = rho.dtype.type  # float32 from embree: the numpy reference's precision
+    real = np.float32  # embree's ranges: the numpy reference compares in float32
     uniform = bin_index.uniform
     r0 = real(bin_index.r0) if uniform else real(0.0)
     inv_step = real(1.0 / bin_index.step) if uniform else real(0.0)
@@ -352,7 +360,7 @@ def _post_cast_numba(
         kbin,
         k_c,
         j_c,
-        rho_mid.astype(rho.dtype, copy=False),
+        rho_mid.astype(np.float32, copy=False),
         u,
         v,
         s,
