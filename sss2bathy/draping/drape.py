@@ -230,12 +230,7 @@ class _Fan:
         np.clip(tail, -1.0, 1.0, out=tail)
         np.arccos(tail, out=tail)
         np.subtract(theta_down[..., None], tail, out=tail)  # ... and their angles
-        if _use_numba():  # the same sorted values, merging the two monotonic parts
-            from sss2bathy.draping import kernels
-
-            kernels.sort_fans(out.reshape(-1, self.n_rays), self.n_uniform)
-        else:
-            out.sort(axis=-1)
+        out.sort(axis=-1)
         return out
 
 

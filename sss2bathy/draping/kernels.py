@@ -394,32 +394,3 @@ def drape_fans(
                 mask_out[k, b] = mask_shadow
             else:
                 mask_out[k, b] = mask_no_hit
-
-
-@njit(**_JIT)
-def sort_fans(fans, n_first):  # pragma: no cover - compiled
-    """Sort each row of ``fans (K, M)`` in place, as ``np.sort``: by merging its first
-    ``n_first`` values (ascending) with the rest (descending), else (a row not so
-    ordered) by sorting it."""
-    K, M = fans.shape
-    row = np.empty(M, fans.dtype)
-    for k in range(K):
-        ordered = True
-        for i in range(1, n_first):
-            if not fans[k, i - 1] <= fans[k, i]:
-                ordered = False
-        for i in range(n_first + 1, M):
-            if not fans[k, i - 1] >= fans[k, i]:
-                ordered = False
-        if not ordered:
-            fans[k] = np.sort(fans[k])
-            continue
-        i, j = 0, M - 1  # next of the ascending part; next (from the end) of the other
-        for q in range(M):
-            if j < n_first or (i < n_first and fans[k, i] <= fans[k, j]):
-                row[q] = fans[k, i]
-                i += 1
-            else:
-                row[q] = fans[k, j]
-                j -= 1
-        fans[k] = row

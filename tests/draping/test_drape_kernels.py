@@ -125,19 +125,6 @@ def test_numba_matches_numpy_on_layover(monkeypatch, make_line):
     _assert_identical(ref, got)
 
 
-def test_sort_fans_matches_np_sort():
-    rs = np.random.default_rng(0)
-    K, M, nu = 40, 300, 120
-    fans = np.empty((K, M), np.float32)
-    fans[:, :nu] = np.sort(rs.uniform(-0.2, 1.7, (K, nu)), axis=1)
-    fans[:, nu:] = -np.sort(-rs.uniform(0.0, 1.6, (K, M - nu)), axis=1)
-    fans[3, nu + 5], fans[3, nu + 6] = fans[3, nu + 6], fans[3, nu + 5]  # not monotonic
-    fans[7, :nu] = fans[7, nu]  # ties across the parts
-    want = np.sort(fans, axis=1)
-    kernels.sort_fans(fans, nu)
-    np.testing.assert_array_equal(fans, want)
-
-
 def test_fast_root_angles_are_within_their_margin():
     # the approximate angle decides only where it is _EPS_T from a threshold: its error
     # must be far below that, with the first ray's direction in float32 as in draping
