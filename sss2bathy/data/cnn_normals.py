@@ -12,10 +12,11 @@ training overlap, or the inference ``overlap`` when one is given (origins from
 the end), the windows run through the network in batches, and overlapping predictions are
 averaged back into the ``(P, 2, B)`` waterfall (one ``bincount`` per head, no loop over
 windows). Lines shorter than a window are zero-padded (and the padding cropped off).
-Inference overlap 0.5 instead of the training 0.75 halves the windows (the cost), bf16
-``precision`` nearly halves each window's cost on a CPU with AVX512-BF16 but multiplies it
-~170x on an AVX2-only CPU (emulated; :func:`cpu_has_native_bf16`, a warning)
-(``python -m benchmarks.cnn_inference``).
+Inference overlap 0.5 instead of the training 0.75 halves the windows (the cost); bf16
+``precision`` (a bfloat16 copy of the network, :func:`inference_net`) divides each window's
+cost by ~2.5 on a CPU with AMX / AVX512-BF16 but multiplies it ~170x on an AVX2-only CPU
+(emulated; :func:`cpu_has_native_bf16`, a warning) (``python -m benchmarks.cnn_inference``;
+accuracy: ``python -m benchmarks.cnn_inference_accuracy``).
 
 Inputs come from the sidescan alone, exactly as in training
 (:class:`sss2bathy.data.windows.WindowLine`): the intensity is normalised over the bins
