@@ -347,7 +347,11 @@ def _post_cast_numba(
     else:
         x0, y0, cell = float(surf.grid.x0), float(surf.grid.y0), float(surf.grid.cell_size)
     th_min, th_max = sensor.beam_limits_rad
-    pts_out, nlat_out, graz_out, mask_out = out
+    # the kernel writes into the caller's chunk views: reshape them without copying
+    pts_out, nlat_out, graz_out, mask_out = (
+        _reshaped_view(a, shape)
+        for a, shape in zip(out, ((K, B, 3), (K, B), (K, B), (K, B)), strict=True)
+    )
     kernels.drape_fans(
         theta,
         tri,
@@ -371,15 +375,23 @@ def _post_cast_numba(
         cell,
         surf.face_normals,
         grad.size > 0,
-        pts_out.reshape(K, B, 3),
-        nlat_out.reshape(K, B),
-        graz_out.reshape(K, B),
-        mask_out.reshape(K, B),
+        pts_out,
+        nlat_out,
+        graz_out,
+        mask_out,
         MASK_NO_HIT,
         MASK_WATER_COLUMN,
         MASK_SHADOW,
         MASK_OUT_OF_BEAM,
     )
+
+
+def _reshaped_view(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``a`` reshaped as a view (writes reach ``a``); raises where that needs a copy."""
+    out = a.reshape(shape)
+    if a.size and not np.may_share_memory(out, a):
+        raise RuntimeError(f"draping: expected a contiguous output chunk, found {a.strides}")
+    return out
 
 
 def _post_cast_numpy(
