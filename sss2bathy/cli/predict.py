@@ -42,6 +42,7 @@ def predict(cfg: DictConfig) -> dict:
         window_cfg=None,
         precision=str(cfg.get("precision", "fp32")),
         overlap=cfg.get("overlap"),
+        batch_size=cfg.get("batch_size"),
     )
     log.info("predicted %d lines of %s with %s", len(preds), survey.name, ckpt)
     if cfg.render and draped is not None:

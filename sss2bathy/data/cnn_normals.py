@@ -68,6 +68,12 @@ log = logging.getLogger(__name__)
 
 NET_PACKAGE = "sss2bathy.models."
 COMPILED_PREFIX = "_orig_mod."
+#: Windows per forward pass on a CPU unless asked otherwise (``predict_normals(batch_size=)``):
+#: the paper network ran at 8.9 windows/s in bf16 with batches of 8 against 7.1 (4), 5.9
+#: (16) and 5.4 (64, its training batch), fp32 3.07 against 2.39 at 64 (2-core Xeon with
+#: AMX, ``python -m benchmarks.cnn_inference --batch N``): a batch's full-resolution
+#: activations must stay in the caches. Results do not depend on it.
+CPU_INFERENCE_BATCH = 8
 CACHE_VERSION = 2  # 2: sonar-only input normalisation, input channels in the key
 #: Inference precisions (``predict_normals(precision=...)``): the autocast dtype, if any.
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
@@ -452,6 +458,7 @@ def predict_normals(
     device: str | torch.device | None = None,
     precision: str = "fp32",
     overlap: float | None = None,
+    batch_size: int | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Predicted n_lat waterfalls of whole lines, cached under ``survey_dir/predictions/``.
 
@@ -472,6 +479,9 @@ def predict_normals(
         overlap: inference overlap in [0, 1) instead of ``window_cfg``'s (the training
             overlap); None: the training overlap. Fewer windows, fewer forward passes (0.5
             instead of 0.75: half); cached under the overlap used.
+        batch_size: windows per forward pass; ``None``: :data:`CPU_INFERENCE_BATCH` on a
+            CPU, ``window_cfg``'s ``batch_size`` (the training batch) elsewhere. Does not
+            change the predictions (nor the cache key).
 
     Returns:
         ``{line: (n_lat (P, 2, B) float32, NaN at invalid bins, mask (P, 2, B) uint8)}``; the
@@ -492,13 +502,19 @@ def predict_normals(
         raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {ckpt_path}")
     if window_cfg is None:
         window_cfg = checkpoint_window_config(ckpt_path)
-    h, w, train_overlap, batch_size = _window_params(window_cfg)
+    h, w, train_overlap, train_batch = _window_params(window_cfg)
     check_precision(precision)
     overlap = check_overlap(overlap)
     if overlap is None:
         overlap = train_overlap
+    if batch_size is not None and (
+        not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1
+    ):
+        raise ValueError(f"batch_size: expected null or an integer >= 1, found {batch_size!r}")
     spec = checkpoint_input_spec(ckpt_path)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if batch_size is None:
+        batch_size = CPU_INFERENCE_BATCH if torch.device(device).type == "cpu" else train_batch
     key_fields = {
         "version": CACHE_VERSION,
         "ckpt": file_sha256(ckpt_path),

@@ -396,7 +396,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         window: the CNN's window (``window_pings``, ``window_bins``, ``overlap``); ``None``:
             the training windows stored in the checkpoint.
         cnn_precision: ``"fp32"`` | ``"bf16"``: the CNN's inference precision
-            (``normals="cnn"``; bf16 = CPU/GPU autocast to bfloat16, cached apart).
+            (``normals="cnn"``; bf16 = a bfloat16 copy of the network, cached apart).
         cnn_overlap: the CNN's inference overlap, a fraction in [0, 1) (0.5: half the
             windows of the training 0.75); ``None``: the training overlap.
         need_intensity: hold normalised intensities (Lambertian sensor model).

@@ -398,3 +398,29 @@ def test_bf16_on_a_cpu_without_native_bfloat16_warns(checkpoint, monkeypatch, ca
         predict_waterfall(net, intensity, (8, 8), 0.75, precision="bf16")
         predict_waterfall(net, intensity, (8, 8), 0.75)
     assert "without native bfloat16" not in caplog.text
+
+
+def test_inference_batch_size_does_not_change_predictions(checkpoint, tmp_path):
+    """``batch_size`` (None: CPU_INFERENCE_BATCH on a CPU) only sets windows per pass."""
+    path, _ = checkpoint
+    survey = Survey(name="tiny", lines=[make_line("a", 30, 20, 0)])
+    window_cfg = {"window_pings": 8, "window_bins": 12, "overlap": 0.75, "batch_size": 64}
+    calls = []
+    real = cnn_normals.predict_waterfall
+
+    def spy(*args, **kwargs):
+        calls.append(args[4])
+        return real(*args, **kwargs)
+
+    cnn_normals.predict_waterfall, restore = spy, real
+    try:
+        default = predict_normals(path, survey, tmp_path / "d", ["a"], None, window_cfg, "cpu")
+        three = predict_normals(
+            path, survey, tmp_path / "t", ["a"], None, window_cfg, "cpu", batch_size=3
+        )
+    finally:
+        cnn_normals.predict_waterfall = restore
+    assert calls == [cnn_normals.CPU_INFERENCE_BATCH, 3]
+    np.testing.assert_allclose(default["a"][0], three["a"][0], atol=1e-5, equal_nan=True)
+    with pytest.raises(ValueError, match="batch_size: expected null or an integer >= 1, found 0"):
+        predict_normals(path, survey, tmp_path, ["a"], None, window_cfg, "cpu", batch_size=0)
