@@ -7,7 +7,7 @@ occlusion), casts the middle rays of those pairs with embree, and calls
 writes points, ``n_lat``, grazing angles and masks. No large temporaries: per fan a few
 arrays of one fan's rays or bins, reused.
 
-The arithmetic repeats the numpy reference (``_drape_chunk_numpy`` in ``drape.py``)
+The arithmetic repeats the numpy reference (``_post_cast_numpy`` in ``drape.py``)
 operation by operation, in the same precision (float32 where it is float32 there, the
 same summation order as ``np.einsum``'s), so results agree to the last bit up to the
 libm functions (``cos``, ``sin``, ``atan2``, ``hypot``, ``acos``) numpy and LLVM call.
