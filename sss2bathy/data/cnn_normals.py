@@ -14,7 +14,7 @@ averaged back into the ``(P, 2, B)`` waterfall (one ``bincount`` per head, no lo
 windows). Lines shorter than a window are zero-padded (and the padding cropped off).
 Inference overlap 0.5 instead of the training 0.75 halves the windows (the cost); bf16
 ``precision`` (a bfloat16 copy of the network, :func:`inference_net`) divides each window's
-cost by ~2.5 on a CPU with AMX / AVX512-BF16 but multiplies it ~170x on an AVX2-only CPU
+cost by ~2.9 (batches of 8) on a CPU with AMX but multiplies it ~170x on an AVX2-only CPU
 (emulated; :func:`cpu_has_native_bf16`, a warning) (``python -m benchmarks.cnn_inference``;
 accuracy: ``python -m benchmarks.cnn_inference_accuracy``).
 
@@ -75,7 +75,7 @@ COMPILED_PREFIX = "_orig_mod."
 #: activations must stay in the caches. Results do not depend on it.
 CPU_INFERENCE_BATCH = 8
 CACHE_VERSION = 2  # 2: sonar-only input normalisation, input channels in the key
-#: Inference precisions (``predict_normals(precision=...)``): the autocast dtype, if any.
+#: Inference precisions (``predict_normals(precision=...)``): the network's dtype, if not fp32.
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
 
 
@@ -250,10 +250,10 @@ def predict_waterfall(
         overlap: fraction of a window shared with the next, in [0, 1).
         batch_size: windows per forward pass.
         precision: ``"fp32"`` or ``"bf16"`` (a bfloat16 copy of ``net`` on bfloat16
-            windows, :func:`inference_net`: 2.5x the windows/s of float32 for the paper
+            windows, :func:`inference_net`: 2.9x the windows/s of float32 for the paper
             network on an AMX CPU, but ~170x slower on an AVX2-only CPU, where it is
             emulated: a warning says so; ``benchmarks/cnn_inference.py``; n_lat changes by
-            ~1e-2, see the README).
+            ~2e-4 on average, at most ~4e-3, on a trained demo net: README).
 
     Returns:
         ``(P, 2, B)`` float32 prediction for every bin (masking is the caller's).
