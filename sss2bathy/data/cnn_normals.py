@@ -308,6 +308,9 @@ def inference_net(
     dtype = PRECISIONS[precision]
     if dtype is None:
         return net, torch.float32
+    params = list(net.parameters())
+    if params and all(q.dtype == dtype for q in params):
+        return net, dtype  # already the copy (predict_normals makes it once per call)
     dev = torch.device(device)
     if dev.type == "cpu" and not cpu_has_native_bf16():
         log.warning(
@@ -535,8 +538,8 @@ def predict_normals(
         path = cache_dir / f"{name}.npz"
         n_lat = _load_cached(path, key, sonar)
         if n_lat is None:
-            if net is None:
-                net = load_normal_net(ckpt_path).to(device)
+            if net is None:  # the precision's network once, for every line
+                net = inference_net(load_normal_net(ckpt_path).to(device), device, precision)[0]
             n_in = getattr(net, "in_channels", len(spec["channels"]))
             if n_in != len(spec["channels"]):
                 raise ValueError(

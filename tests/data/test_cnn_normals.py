@@ -364,6 +364,7 @@ def test_bf16_inference_is_close_to_fp32_and_cached_apart(checkpoint, tmp_path):
     assert dtype == torch.bfloat16 and low is not net
     assert all(p.dtype == torch.bfloat16 for p in low.parameters()) and not low.training
     assert cnn_normals.inference_net(net, "cpu", "fp32") == (net, torch.float32)
+    assert cnn_normals.inference_net(low, "cpu", "bf16")[0] is low  # already bfloat16
     with pytest.raises(ValueError, match=r"precision: expected one of \['fp32', 'bf16'\]"):
         predict_waterfall(net, intensity, (8, 16), 0.75, precision="fp16")
 
@@ -400,7 +401,7 @@ def test_bf16_on_a_cpu_without_native_bfloat16_warns(checkpoint, monkeypatch, ca
     assert "without native bfloat16" not in caplog.text
 
 
-def test_inference_batch_size_does_not_change_predictions(checkpoint, tmp_path):
+def test_inference_batch_size_does_not_change_predictions(checkpoint, tmp_path, monkeypatch):
     """``batch_size`` (None: CPU_INFERENCE_BATCH on a CPU) only sets windows per pass."""
     path, _ = checkpoint
     survey = Survey(name="tiny", lines=[make_line("a", 30, 20, 0)])
@@ -412,14 +413,11 @@ def test_inference_batch_size_does_not_change_predictions(checkpoint, tmp_path):
         calls.append(args[4])
         return real(*args, **kwargs)
 
-    cnn_normals.predict_waterfall, restore = spy, real
-    try:
-        default = predict_normals(path, survey, tmp_path / "d", ["a"], None, window_cfg, "cpu")
-        three = predict_normals(
-            path, survey, tmp_path / "t", ["a"], None, window_cfg, "cpu", batch_size=3
-        )
-    finally:
-        cnn_normals.predict_waterfall = restore
+    monkeypatch.setattr(cnn_normals, "predict_waterfall", spy)
+    default = predict_normals(path, survey, tmp_path / "d", ["a"], None, window_cfg, "cpu")
+    three = predict_normals(
+        path, survey, tmp_path / "t", ["a"], None, window_cfg, "cpu", batch_size=3
+    )
     assert calls == [cnn_normals.CPU_INFERENCE_BATCH, 3]
     np.testing.assert_allclose(default["a"][0], three["a"][0], atol=1e-5, equal_nan=True)
     with pytest.raises(ValueError, match="batch_size: expected null or an integer >= 1, found 0"):
