@@ -5,6 +5,12 @@ with its shapes, strides and dtype, forward and backward; :func:`time_products` 
 each distinct product on fresh tensors of the same layout, so ``sum(count x time)`` is the
 time the products alone take at the ``torch.mm`` rate (the *matmul bound* of a step);
 :func:`siren_matmul_flops` is the analytic count to check the recording against.
+
+The recorder also counts the step's sines and cosines (``sin``, ``cos``, in place or not),
+which a SIREN cannot skip: one per hidden unit and point, two where the gradient is
+needed. :func:`time_sines` re-times them alone at the ``torch.sin``/``torch.cos`` rate (the
+*sine bound*), so ``matmul / (matmul + sine bound)`` is the highest fraction of its matmul
+bound a step can reach with PyTorch's sine kernels, whatever else it saves.
 """
 
 from __future__ import annotations
@@ -27,6 +33,16 @@ _MATMUL_OPS = {
 }
 
 
+_SINE_OPS = {
+    torch.ops.aten.sin.default: "sin",
+    torch.ops.aten.sin_.default: "sin",
+    torch.ops.aten.sin.out: "sin",
+    torch.ops.aten.cos.default: "cos",
+    torch.ops.aten.cos_.default: "cos",
+    torch.ops.aten.cos.out: "cos",
+}
+
+
 def _layout(t: torch.Tensor) -> tuple:
     return (tuple(t.shape), tuple(t.stride()), str(t.dtype).removeprefix("torch."))
 
@@ -36,11 +52,14 @@ class MatmulRecorder(TorchDispatchMode):
 
     ``calls`` counts signatures ``(op, (shape, stride, dtype) of each tensor argument,
     scalar arguments)``; :meth:`flops` sums ``2 n k m`` (times the batch) over them.
+    ``sines`` counts ``(sin | cos, (shape, stride, dtype) of the argument)`` of every sine
+    and cosine (in place or not); :meth:`sine_elements` sums their elements.
     """
 
     def __init__(self) -> None:
         super().__init__()
         self.calls: Counter = Counter()
+        self.sines: Counter = Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
@@ -49,7 +68,14 @@ class MatmulRecorder(TorchDispatchMode):
             tensors = tuple(_layout(a) for a in args if isinstance(a, torch.Tensor))
             scalars = tuple(sorted((k, float(v)) for k, v in kwargs.items()))
             self.calls[(name, tensors, scalars)] += 1
+        sine = _SINE_OPS.get(func)
+        if sine is not None:
+            self.sines[(sine, _layout(args[0]))] += 1
         return func(*args, **kwargs)
+
+    def sine_elements(self) -> int:
+        """Elements of every recorded sine and cosine."""
+        return sum(n * math.prod(sig[1][0]) for sig, n in self.sines.items())
 
     def flops(self, ops: Iterable[str] = ("mm", "addmm", "bmm", "baddbmm")) -> int:
         """Total matmul FLOPs of the recorded products of ``ops``."""
@@ -99,6 +125,49 @@ def time_products(
             op(*args, **kwargs)
 
         call()  # warm-up (allocator, kernel selection)
+        synchronize(device)
+        t0 = time.perf_counter()
+        call()
+        synchronize(device)
+        once = max(time.perf_counter() - t0, 1e-7)
+        loops = max(1, min(1000, int(math.ceil(min_time_s / once))))
+        for r in range(int(repeats)):
+            synchronize(device)
+            t0 = time.perf_counter()
+            for _ in range(loops):
+                call()
+            synchronize(device)
+            totals[r] += count * (time.perf_counter() - t0) / loops
+    return totals
+
+
+def time_sines(
+    sines: Mapping[tuple, int],
+    repeats: int,
+    device: torch.device,
+    min_time_s: float = 2e-3,
+    seed: int = 0,
+) -> list[float]:
+    """Re-time every recorded sine and cosine alone (:meth:`MatmulRecorder.sine_elements`);
+    returns, per repeat, ``sum(count * time)`` (s).
+
+    Each runs as ``torch.sin``/``torch.cos`` into a preallocated output of its recorded
+    shape and dtype, on arguments of unit-variance normal pre-activations times 3 (a SIREN's
+    are of that order; PyTorch's vectorised kernels take the same path for any argument
+    below ~100 rad), in a loop of ``min_time_s`` as :func:`time_products`.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    totals = [0.0] * int(repeats)
+    for (name, layout), count in sines.items():
+        shape, _, dtype = layout
+        x = (3 * torch.randn(shape, generator=gen)).to(device=device, dtype=getattr(torch, dtype))
+        out = torch.empty_like(x)
+        fn = getattr(torch, name)
+
+        def call(fn=fn, x=x, out=out) -> None:
+            fn(x, out=out)
+
+        call()
         synchronize(device)
         t0 = time.perf_counter()
         call()

@@ -11,6 +11,13 @@ counts times those times are summed (:mod:`benchmarks.matmul`). The step's fract
 bound is ``bound / step time`` (1 = the step costs no more than its products). The
 recorded FLOPs are checked against an analytic count from the layer shapes and the points
 through each pass (:func:`~benchmarks.matmul.siren_matmul_flops`).
+
+The step's sines and cosines are recorded too and re-timed alone at the ``torch.sin`` rate
+(the *sine bound*, :func:`~benchmarks.matmul.time_sines`): a SIREN evaluates one sine per
+hidden unit and point (two with the gradient), so ``matmul bound / (matmul + sine bound)``
+is the *ceiling* of the step's matmul fraction with PyTorch's sine kernels -- what the step
+would reach if it did nothing else -- and ``(matmul + sine bound) / step time`` says how much
+of the step the two account for.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from typing import Any
 
 import torch
 
-from benchmarks.matmul import MatmulRecorder, siren_matmul_flops, time_products
+from benchmarks.matmul import MatmulRecorder, siren_matmul_flops, time_products, time_sines
 from benchmarks.scene import (
     DEPTH_M,
     SONAR_DEPTH_M,
@@ -129,7 +136,14 @@ def bench_siren_step(
         )
         module = siren_module(siren, lr, beam, n_pings * n_batches, n_bins, dev)
         opt = module.configure_optimizers()["optimizer"]
-        run: dict[str, Any] = {"k": 0, "valid": [], "iters": [], "times": [], "bound": []}
+        run: dict[str, Any] = {
+            "k": 0,
+            "valid": [],
+            "iters": [],
+            "times": [],
+            "bound": [],
+            "sine": [],
+        }
 
         def step() -> None:
             batch = batches[run["k"] % n_batches]
@@ -162,6 +176,7 @@ def bench_siren_step(
             run["times"] += time_runs(run["step"], 0, 1, dev)
             if i in bound_at:
                 run["bound"] += time_products(run["rec"].calls, 1, dev, seed=seed + i)
+                run["sine"] += time_sines(run["rec"].sines, 1, dev, seed=seed + i)
 
     bins_all = n_pings * 2 * n_bins
     first = runs[names[0]]
@@ -170,6 +185,8 @@ def bench_siren_step(
     for p, run in runs.items():
         prefix = "" if p == names[0] else f"{p}: "
         times, bound, valid, rec = run["times"], run["bound"], run["valid"], run["rec"]
+        sine, mm_med = run["sine"], statistics.median(run["bound"])
+        sine_med = statistics.median(sine)
         step_flops = rec.flops()
         mm_note = "the step's products alone at the torch.mm rate"
         if p != "fp32":
@@ -209,6 +226,24 @@ def bench_siren_step(
                 [100 * statistics.median(bound) / t for t in times],
                 "target >= 70 %" if p == "fp32" else f"of the {p} bound",
             ),
+            figure(
+                prefix + "sine bound",
+                "s",
+                sine,
+                f"the step's {rec.sine_elements() / 1e6:.1f} M sin/cos alone at the torch.sin rate",
+            ),
+            figure(
+                prefix + "(matmul + sine bound) / step time",
+                "%",
+                [100 * (mm_med + sine_med) / t for t in times],
+                "the share of the step its products and sines account for",
+            ),
+            figure(
+                prefix + "ceiling: matmul / (matmul + sine bound)",
+                "%",
+                100 * mm_med / (mm_med + sine_med),
+                "the matmul fraction of a step doing nothing but its products and sines",
+            ),
         ]
         if p != names[0]:
             figures.append(
@@ -219,6 +254,15 @@ def bench_siren_step(
                     "per interleaved pair of steps",
                 )
             )
+            figures.append(
+                figure(
+                    f"{p}: matmul bound speed-up over {names[0]}",
+                    "x",
+                    [a / b for a, b in zip(first["bound"], bound, strict=True)],
+                    "the products alone: what the step's speed-up stays below while the rest "
+                    "of the step costs the same",
+                )
+            )
         info["precisions"][p] = {
             "points": run["points"],
             "analytic_flops": siren_matmul_flops(hidden, n_layers, run["points"]),
@@ -227,6 +271,10 @@ def bench_siren_step(
             "distinct_products": len(rec.calls),
             "products": sum(rec.calls.values()),
             "bound_fraction": statistics.median(bound) / statistics.median(times),
+            "sine_elements": rec.sine_elements(),
+            "sine_calls": sum(rec.sines.values()),
+            "sine_bound_s": sine_med,
+            "matmul_fraction_ceiling": mm_med / (mm_med + sine_med),
         }
     info.update(info["precisions"][names[0]])
     altitude = DEPTH_M - SONAR_DEPTH_M
@@ -250,7 +298,8 @@ def bench_siren_step(
             "SIREN, SirenModule.model_step (warm-started finder with the fit's defaults, "
             "explicit gradient pass, normal + height loss) + backward + Adam. Matmul bound: "
             "every product of one step recorded (shape, strides, dtype) and re-timed alone "
-            f"with torch.mm/addmm/bmm. Precisions {', '.join(names)} interleaved (bf16: the "
+            "with torch.mm/addmm/bmm; its sines and cosines likewise with torch.sin/cos "
+            f"(sine bound). Precisions {', '.join(names)} interleaved (bf16: the "
             "hidden layers of the normal-loss gradient pass; finder, heights and map in "
             "fp32). Allocator: "
             + ("glibc tuned (mallopt)" if allocator.applied else f"as is ({allocator.reason})")

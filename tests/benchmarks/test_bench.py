@@ -88,6 +88,17 @@ def test_siren_step_counts_every_matmul(doc):
     assert figs["matmul bound"]["median"] < figs["step time"]["median"]
     ratio = figs["matmul bound / step time"]["median"] / 100
     assert ratio == pytest.approx(info["bound_fraction"], rel=0.5)
+    # sines: one per hidden unit and point of every pass, a cosine too in gradient passes
+    # (2 sine layers of 16 here); the arc geometry's sin/cos of the angles come on top
+    per_point = 2 * 16
+    heights = pts.get("height", 0) + pts["height_grad"]
+    gradients = pts.get("gradient", 0) + pts["gradient_grad"]
+    siren_sines = per_point * (heights + 2 * gradients)
+    assert siren_sines <= info["sine_elements"] <= 1.25 * siren_sines
+    assert 0 < figs["sine bound"]["median"] < figs["step time"]["median"]
+    ceiling = figs["ceiling: matmul / (matmul + sine bound)"]["median"] / 100
+    assert ceiling == pytest.approx(info["matmul_fraction_ceiling"])
+    assert info["bound_fraction"] < ceiling < 1
 
 
 def test_siren_matmul_flops_by_hand():
