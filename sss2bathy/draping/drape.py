@@ -221,9 +221,19 @@ class _Fan:
         theta_down, rho_hi = self.theta_down[sl].astype(f32), self.rho_hi[sl].astype(f32)
         th_lo = f32(self.th_lo)
         out = np.empty((*th_hi.shape, self.n_rays), f32)
+        tail = out[..., self.n_uniform :]
+        if _use_numba():  # the same float32 steps, compiled, and a merge for the sort
+            from sss2bathy.draping import kernels
+
+            kernels.fan_ramps(th_lo, th_hi, hc, rho_hi, *self._ramps, out)
+            np.arccos(tail, out=tail)
+            merged = np.empty_like(out)
+            if kernels.fan_merge(out, self.n_uniform, theta_down, merged):
+                return merged
+            out.sort(axis=-1)
+            return out
         np.multiply((th_hi - th_lo)[..., None], self._ramps[0], out=out[..., : self.n_uniform])
         out[..., : self.n_uniform] += th_lo
-        tail = out[..., self.n_uniform :]
         np.multiply((rho_hi - hc)[..., None], self._ramps[1], out=tail)
         tail += hc[..., None]  # range-uniform ranges ...
         np.divide(hc[..., None], tail, out=tail)

@@ -1,5 +1,10 @@
-"""Compiled (numba) bookkeeping of draping: everything after the fans are cast.
+"""Compiled (numba) parts of draping: fan angles, embree's first-hit call, bookkeeping.
 
+:meth:`sss2bathy.draping.drape._Fan.angles` builds the fans with :func:`fan_ramps` and
+:func:`fan_merge` (numpy's float32 steps and a merge of two sorted runs for its sort; the
+``arccos`` stays numpy's). :func:`embree_first_hits` is embree's ``rtcIntersect1`` per ray
+on embreex's own scene, giving faces and distances without embreex's per-call output
+arrays (:meth:`sss2bathy.draping.surface.DrapeSurface.cast`).
 :func:`sss2bathy.draping.drape._drape_chunk` casts the fans with embree, then calls
 :func:`fan_brackets` (bin counts of the first hits and the ray pairs to check for an
 occlusion), casts the middle rays of those pairs with embree, and calls
@@ -18,7 +23,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 # IEEE semantics: x / 0 -> inf / NaN like numpy, no ZeroDivisionError
 _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -47,6 +52,79 @@ def _bin_count(x, range_m, uniform, r0, inv_step):  # pragma: no cover - compile
         else:
             hi = mid
     return lo
+
+
+@njit(**_JIT)
+def fan_ramps(th_lo, th_hi, hc, rho_hi, ramp_u, ramp_r, out):  # pragma: no cover - compiled
+    """The two parts of ``_Fan.angles`` before ``arccos``, in float32 as numpy does them.
+
+    Args:
+        th_lo: float32 lower fan edge; th_hi, hc, rho_hi: ``(n, 2)`` float32 upper edge,
+            flat-floor height over ``c`` and range limit per fan.
+        ramp_u, ramp_r: float32 ramps ``[0, 1]`` of the uniform and range-uniform parts.
+        out: ``(n, 2, len(ramp_u) + len(ramp_r))`` float32: the uniform angles
+            ``(th_hi - th_lo) ramp + th_lo``, then the clipped cosines
+            ``hc / ((rho_hi - hc) ramp + hc)`` of the range-uniform rays.
+    """
+    n_u = ramp_u.shape[0]
+    n_r = ramp_r.shape[0]
+    for p in range(out.shape[0]):
+        for h in range(out.shape[1]):
+            span = th_hi[p, h] - th_lo
+            for i in range(n_u):
+                out[p, h, i] = span * ramp_u[i] + th_lo
+            c, extent = hc[p, h], rho_hi[p, h] - hc[p, h]
+            for i in range(n_r):
+                x = c / (extent * ramp_r[i] + c)
+                if x < -1.0:
+                    x = np.float32(-1.0)
+                elif x > 1.0:
+                    x = np.float32(1.0)
+                out[p, h, n_u + i] = x
+
+
+@njit(**_JIT)
+def fan_merge(parts, n_u, theta_down, out):  # pragma: no cover - compiled
+    """``_Fan.angles``' sorted fans from ``parts`` (:func:`fan_ramps`, the tail's arccos
+    taken): the uniform angles (ascending) merged with ``theta_down - arccos`` of the
+    range-uniform part (descending). Returns False where a part is not monotonic or holds
+    NaN: then ``out`` is not filled and ``parts`` holds the unsorted angles, for
+    ``np.sort``."""
+    n, M = parts.shape[1], parts.shape[2]
+    for p in range(parts.shape[0]):
+        for h in range(n):
+            a = parts[p, h]
+            td = theta_down[p, h]
+            for i in range(n_u, M):
+                a[i] = td - a[i]
+    for p in range(parts.shape[0]):
+        for h in range(n):
+            a = parts[p, h]
+            for i in range(n_u - 1):
+                if not a[i] <= a[i + 1]:
+                    return False
+            for i in range(n_u, M - 1):
+                if not a[i] >= a[i + 1]:
+                    return False
+            o = out[p, h]
+            i, j, q = 0, M - 1, 0  # ascending part from the front, descending from the back
+            while i < n_u and j >= n_u:
+                if a[j] < a[i]:
+                    o[q] = a[j]
+                    j -= 1
+                else:
+                    o[q] = a[i]
+                    i += 1
+                q += 1
+            while i < n_u:
+                o[q] = a[i]
+                i += 1
+                q += 1
+            while j >= n_u:
+                o[q] = a[j]
+                j -= 1
+                q += 1
+    return True
 
 
 @njit(**_JIT)
@@ -84,6 +162,56 @@ def fan_brackets(theta, tri, rho, range_m, uniform, r0, inv_step, jump_thr):  # 
                 t_check[n] = half * (theta[k, j] + theta[k, j + 1])
                 n += 1
     return kbin, k_c[:n], j_c[:n], t_check[:n]
+
+
+# Embree's single-ray first-hit query ``rtcIntersect1(scene, rayhit, args)``, bound by
+# name: :func:`sss2bathy.draping.surface._embree_scene_pointer` makes the library that
+# embreex loaded visible to LLVM before the first call (pointers passed as integers,
+# which the x86-64 and AArch64 calling conventions pass like pointers).
+_rtc_intersect1 = types.ExternalFunction(
+    "rtcIntersect1", types.void(types.uintp, types.uintp, types.uintp)
+)
+_INVALID_ID = np.uint32(0xFFFFFFFF)
+
+
+@njit(**_JIT)
+def embree_first_hits(scene, origins, repeat, directions, inv_scale, tri, dist):  # pragma: no cover
+    """First hits of rays with embree's ``rtcIntersect1``, the call embreex makes per ray.
+
+    Args:
+        scene: the ``RTCScene`` handle (an address) of a committed embreex scene.
+        origins: ``(K, 3)`` float32 ray origins in the scene's frame; ray ``i`` starts at
+            ``origins[i // repeat]``.
+        repeat: rays per origin.
+        directions: ``(K * repeat, 3)`` float32 directions in the scene's frame.
+        inv_scale: float32 world units per scene unit.
+        tri, dist: ``(K * repeat,)`` outputs: the hit face (int32, -1 = miss) and
+            embree's ``tfar`` times ``inv_scale`` in float32 (NaN = miss), as
+            ``_EmbreeScene.run`` makes them from embreex's full output.
+    """
+    # one RTCRayHit (80 bytes, 96 with instance arrays), 16-byte aligned in the buffer:
+    # ray org, tnear, dir, time, tfar, mask, id, flags; hit Ng, u, v, primID, geomID,
+    # instID (, instPrimID)
+    buf = np.zeros(40, np.float32)
+    start = ((16 - buf.ctypes.data % 16) % 16) // 4
+    ray = buf[start : start + 32]
+    bits = ray.view(np.uint32)
+    addr = ray.ctypes.data
+    for i in range(directions.shape[0]):
+        o = i // repeat
+        ray[0], ray[1], ray[2], ray[3] = origins[o, 0], origins[o, 1], origins[o, 2], 0.0
+        ray[4], ray[5], ray[6], ray[7] = directions[i, 0], directions[i, 1], directions[i, 2], 0.0
+        ray[8] = np.inf
+        bits[9], bits[10], bits[11] = _INVALID_ID, 0, 0  # mask: every geometry
+        bits[17], bits[18], bits[19], bits[20] = _INVALID_ID, _INVALID_ID, _INVALID_ID, _INVALID_ID
+        _rtc_intersect1(scene, addr, 0)
+        face = bits[17]
+        if face == _INVALID_ID:
+            tri[i] = -1
+            dist[i] = np.nan
+        else:
+            tri[i] = np.int32(face)
+            dist[i] = ray[8] * inv_scale
 
 
 # Roots whose angle the fast path below only approximates (error < 1e-6 rad: the first

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import ctypes
+import gc
+import logging
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sss2bathy.survey import BathyGrid
+
+log = logging.getLogger(__name__)
+
+# Cast rays that need distances with embree's rtcIntersect1 called from a compiled loop
+# (:func:`sss2bathy.draping.kernels.embree_first_hits`) on embreex's own scene, where its
+# handle can be found and checked (:func:`_embree_scene_pointer`); else through
+# embreex's full-output call. Same faces and distances to the bit, at the cost of
+# embreex's ids-only call (no per-call arrays of u, v, normals and geometry ids).
+DIRECT_EMBREE = True
 
 
 class _EmbreeScene:
@@ -35,6 +49,7 @@ class _EmbreeScene:
             vertices=((verts - self.origin) * self.scale).astype(np.float32),
             indices=np.asarray(mesh.faces, dtype=np.int32),
         )
+        self._handle: int | None = None  # the RTCScene address, 0 = not available
 
     def origins(self, origins: np.ndarray) -> np.ndarray:
         """``(N, 3)`` float32 ray origins in the scene's frame from world ``(N, 3)``."""
@@ -56,6 +71,122 @@ class _EmbreeScene:
         dist *= np.float32(1.0 / self.scale)
         dist[tri < 0] = np.nan
         return tri, dist
+
+    def first_hits_direct(
+        self, origins32: np.ndarray, directions32: np.ndarray, repeat: int
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`run` with ``distances`` of rays ``directions32 (K * repeat, 3)`` from
+        ``origins32 (K, 3)`` (not repeated), both float32 in the frame, by the compiled
+        ``rtcIntersect1`` loop; ``None`` where that is off or unavailable."""
+        if not DIRECT_EMBREE:
+            return None
+        if self._handle is None:
+            self._handle = _embree_scene_pointer(self)
+        if not self._handle:
+            return None
+        from sss2bathy.draping import kernels
+
+        n = len(directions32)
+        tri, dist = np.empty(n, np.int32), np.empty(n, np.float32)
+        kernels.embree_first_hits(
+            self._handle,
+            origins32,
+            int(repeat),
+            directions32,
+            np.float32(1.0 / self.scale),
+            tri,
+            dist,
+        )
+        return tri, dist
+
+
+def _embree_scene_pointer(scene: _EmbreeScene) -> int:
+    """The ``RTCScene`` address inside embreex's ``EmbreeScene``, checked; 0 if unusable.
+
+    embreex keeps it in a private C field (after the object header: the scene, the
+    ``is_committed`` flag, the device object). Used only when the object has that size,
+    the flag and device object sit where expected, embree reports that device for the
+    scene, and a test fan of rays gives embreex's own faces and distances to the bit.
+    Also makes the embree library embreex loaded visible to numba's compiled code.
+    """
+    try:
+        import llvmlite.binding as llvm
+
+        from sss2bathy.draping import kernels  # noqa: F401  (numba)
+    except ImportError:
+        return 0
+    es = scene.scene
+    try:
+        if scene.scene.is_committed == 0:  # embreex builds the BVH on its first query
+            es.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
+        word = ctypes.sizeof(ctypes.c_void_p)
+        devices = [r for r in gc.get_referents(es) if type(r).__name__ == "EmbreeDevice"]
+        base = id(es)
+        if not (
+            sys.implementation.name == "cpython"
+            and word == 8
+            and type(es).__basicsize__ == 40
+            and len(devices) == 1
+            and type(devices[0]).__basicsize__ == 24
+            and es.is_committed == 1
+            and ctypes.c_int.from_address(base + 24).value == 1
+            and ctypes.c_void_p.from_address(base + 32).value == id(devices[0])
+        ):
+            return 0
+        handle = ctypes.c_void_p.from_address(base + 16).value or 0
+        device = ctypes.c_void_p.from_address(id(devices[0]) + 16).value
+        path = _loaded_library("libembree4")
+        if not handle or not device or path is None:
+            return 0
+        lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_NOW)  # the loaded one only
+        lib.rtcGetSceneDevice.restype = ctypes.c_void_p
+        lib.rtcGetSceneDevice.argtypes = [ctypes.c_void_p]
+        lib.rtcReleaseDevice.argtypes = [ctypes.c_void_p]
+        got = lib.rtcGetSceneDevice(handle)
+        if got:
+            lib.rtcReleaseDevice(got)  # rtcGetSceneDevice took a reference
+        if got != device:
+            return 0
+        llvm.load_library_permanently(path)
+        if not _direct_agrees(scene, handle):
+            log.warning("draping: embree's direct first-hit call disagrees with embreex; unused")
+            return 0
+    except (OSError, AttributeError, ValueError, TypeError) as exc:
+        log.info("draping: embree's direct first-hit call unavailable (%s)", exc)
+        return 0
+    return int(handle)
+
+
+def _loaded_library(stem: str) -> str | None:
+    """Path of an already loaded shared library whose file name starts with ``stem``."""
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if stem in line}
+    except OSError:
+        return None
+    paths = {p for p in paths if os.path.basename(p).startswith(stem)}
+    return paths.pop() if len(paths) == 1 else None
+
+
+def _direct_agrees(scene: _EmbreeScene, handle: int) -> bool:
+    """Whether a fan of test rays down through the scene's box gives embreex's faces and
+    distances to the bit with the compiled loop."""
+    from sss2bathy.draping import kernels
+
+    lo, hi = np.zeros(3), np.full(3, 100.0)  # the scene's frame spans about [0, 100]
+    rs = np.random.default_rng(0)
+    o = np.column_stack(
+        [rs.uniform(lo[0], hi[0], 64), rs.uniform(lo[1], hi[1], 64), np.full(64, 150.0)]
+    ).astype(np.float32)
+    d = np.column_stack([rs.normal(0, 0.3, 64), rs.normal(0, 0.3, 64), -np.ones(64)]).astype(
+        np.float32
+    )
+    want_tri, want = scene.run(o, d, distances=True)
+    tri, dist = np.empty(64, np.int32), np.empty(64, np.float32)
+    kernels.embree_first_hits(handle, o, 1, d, np.float32(1.0 / scene.scale), tri, dist)
+    return bool(
+        np.array_equal(tri, want_tri) and np.array_equal(dist.view(np.int32), want.view(np.int32))
+    )
 
 
 def _make_intersector(mesh: Any, engine: str) -> tuple[Any, str]:
@@ -173,6 +304,11 @@ class DrapeSurface:
             return (tri, np.zeros(0, np.float32)) if distances else tri
         if isinstance(self.intersector, _EmbreeScene):
             o32 = self.intersector.origins(origins)
+            if distances:
+                d32 = np.ascontiguousarray(directions, dtype=np.float32)
+                direct = self.intersector.first_hits_direct(o32, d32, repeat)
+                if direct is not None:
+                    return direct
             if repeat > 1:
                 o32 = np.repeat(o32, repeat, axis=0)
             d32 = np.ascontiguousarray(directions, dtype=np.float32)

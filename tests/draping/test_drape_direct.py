@@ -1,0 +1,117 @@
+"""The compiled fan set-up and ray cast of draping against the paths they replace, to the
+bit: embree's ``rtcIntersect1`` called from compiled code on embreex's scene
+(``surface.DIRECT_EMBREE``) against embreex's full-output call, the compiled fan angles
+(``fan_ramps`` + ``fan_merge``) against the numpy ones, and ``DrapedLine.validate``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import sss2bathy.draping.drape as drape_mod
+import sss2bathy.draping.surface as surface_mod
+from sss2bathy.draping import DrapeConfig, DrapedLine, DrapeSurface, drape_line, kernels
+from sss2bathy.survey import MASK_NO_HIT, SurveyFormatError
+from tests.draping.test_drape_kernels import _holey_rough_grid, _line
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a).view(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def surface() -> DrapeSurface:
+    return DrapeSurface.from_grid(_holey_rough_grid())
+
+
+def test_direct_embree_cast_matches_embreex(monkeypatch, surface):
+    if surface.engine != "embree":
+        pytest.skip("embree not available")
+    rs = np.random.default_rng(2)
+    K, M = 40, 300
+    origins = np.column_stack([rs.uniform(-30, 30, K), rs.uniform(-30, 30, K), np.full(K, -11.0)])
+    t = rs.uniform(-0.2, 3.3, (K, M))  # some rays upwards or off the grid: misses
+    az = rs.uniform(0, 2 * np.pi, (K, 1))
+    d = np.stack([np.cos(t) * np.cos(az), np.cos(t) * np.sin(az), -np.sin(t)], -1)
+    d = d.reshape(-1, 3).astype(np.float32)
+    monkeypatch.setattr(surface_mod, "DIRECT_EMBREE", False)
+    want_tri, want = surface.cast(origins, d, repeat=M, distances=True)
+    monkeypatch.setattr(surface_mod, "DIRECT_EMBREE", True)
+    tri, dist = surface.cast(origins, d, repeat=M, distances=True)
+    assert surface.intersector._handle, "the direct call should be available here"
+    assert (want_tri < 0).any() and (want_tri >= 0).mean() > 0.5
+    assert tri.dtype == want_tri.dtype and dist.dtype == want.dtype
+    np.testing.assert_array_equal(tri, want_tri)
+    np.testing.assert_array_equal(_bits(dist), _bits(want))
+
+
+def test_drape_line_same_bits_with_and_without_direct_embree(monkeypatch, surface):
+    line = _line()
+    monkeypatch.setattr(surface_mod, "DIRECT_EMBREE", False)
+    ref = drape_line(line, surface)
+    monkeypatch.setattr(surface_mod, "DIRECT_EMBREE", True)
+    got = drape_line(line, surface, DrapeConfig(pings_per_chunk=5))
+    for name in ("points", "n_lat", "grazing_rad", "mask"):
+        np.testing.assert_array_equal(_bits(getattr(got, name)), _bits(getattr(ref, name)))
+
+
+def test_compiled_fan_angles_match_numpy(monkeypatch, surface):
+    line = _line()
+    range_m = line.range_m.astype(np.float64)
+    fan = drape_mod._Fan(line, surface, range_m, float(np.diff(range_m)[0]), DrapeConfig())
+    merged = []
+    merge = kernels.fan_merge
+
+    def spy(*args):
+        merged.append(merge(*args))
+        return merged[-1]
+
+    monkeypatch.setattr(kernels, "fan_merge", spy)
+    monkeypatch.setattr(drape_mod, "BOOKKEEPING", "numpy")
+    ref = fan.angles(slice(2, 13))
+    monkeypatch.setattr(drape_mod, "BOOKKEEPING", "numba")
+    got = fan.angles(slice(2, 13))
+    assert merged == [True]
+    assert np.all(np.diff(got, axis=-1) >= 0)
+    np.testing.assert_array_equal(_bits(got), _bits(ref))
+
+
+def test_fan_merge_declines_unsorted_or_nan_parts():
+    n_u = 4
+    good = np.array([[[0.0, 0.1, 0.5, 0.9, 0.2, 0.4, 0.7]]], np.float32)  # tail: arccos
+    td = np.zeros((1, 1), np.float32)
+    out = np.empty_like(good)
+    parts = good.copy()
+    assert kernels.fan_merge(parts, n_u, td, out)
+    np.testing.assert_array_equal(out, np.sort(parts, axis=-1))
+    for bad in (2, 5):  # a non-monotonic or NaN entry in either part
+        for value in (np.nan, 0.05):
+            parts = good.copy()
+            parts[0, 0, bad] = value
+            assert not kernels.fan_merge(parts, n_u, td, out)
+            # parts now holds every angle (the tail's theta_down - arccos), for np.sort
+            want = good.copy()
+            want[0, 0, bad] = value
+            want[0, 0, n_u:] = td[0, 0] - want[0, 0, n_u:]
+            np.testing.assert_array_equal(_bits(parts), _bits(want))
+
+
+def _draped(P: int = 3, B: int = 5) -> dict[str, np.ndarray]:
+    rs = np.random.default_rng(0)
+    return {
+        "points": rs.normal(size=(P, 2, B, 3)).astype(np.float32),
+        "n_lat": rs.uniform(-1, 1, (P, 2, B)).astype(np.float32),
+        "grazing_rad": rs.uniform(0, 1, (P, 2, B)).astype(np.float32),
+        "mask": np.zeros((P, 2, B), np.uint8),
+    }
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("coord", [0, 1, 2])
+def test_validate_rejects_any_non_finite_coordinate_at_valid_bins(value, coord):
+    arrays = _draped()
+    arrays["points"][1, 0, 2, coord] = value
+    with pytest.raises(SurveyFormatError, match="points"):
+        DrapedLine(**arrays)
+    arrays["mask"][1, 0, 2] = MASK_NO_HIT  # not a valid bin: allowed
+    DrapedLine(**arrays)
