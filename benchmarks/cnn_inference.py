@@ -2,12 +2,16 @@
 forward pass in each variant, interleaved in one run (medians), and the projected time
 for a survey's lines at each inference overlap.
 
-Variants: ``fp32`` (contiguous), ``fp32_cl`` (``channels_last``), ``bf16`` (CPU autocast
-to bfloat16), ``bf16_cl``, ``bf16_net`` (a bfloat16 copy of the network on bfloat16
-windows: what ``predict_waterfall(precision="bf16")`` runs,
-:func:`sss2bathy.data.cnn_normals.inference_net`), ``bf16_net_cl``; each under
-``torch.inference_mode``. Random weights: the cost of a forward pass does not depend on
-them.
+Variants: ``fp32`` (contiguous: what ``predict_waterfall`` runs in fp32), ``fp32_cl``
+(``channels_last``), ``fp32_cn_cl`` (channels-last with the instance norms computed as
+per-channel group norms, :func:`sss2bathy.models.normal_cnn.channel_norm_copy`), ``bf16``
+(CPU autocast to bfloat16), ``bf16_cl``, ``bf16_net`` (what
+``predict_waterfall(precision="bf16")`` runs on a CPU,
+:func:`sss2bathy.data.cnn_normals.inference_net`: a bfloat16, channels-last, channel-norm
+copy of the network on bfloat16 windows), ``bf16_net_in`` (a plain bfloat16 copy with its
+``InstanceNorm2d``, contiguous: what ran before) and ``bf16_net_in_cl`` (that copy
+channels-last); each under ``torch.inference_mode``. Random weights: the cost of a forward
+pass does not depend on them.
 
 The projection (``projected_min_12_lines``) is windows / windows-per-second for the paper's
 12 test lines (2000 pings, 512 bins per side, both heads) at each ``--overlaps`` value
@@ -23,6 +27,7 @@ pipeline's overhead) and the time of one paper line's stitching.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import statistics
 import time
@@ -30,7 +35,16 @@ from collections.abc import Sequence
 
 import torch
 
-VARIANTS = ("fp32", "fp32_cl", "bf16", "bf16_cl", "bf16_net", "bf16_net_cl")
+VARIANTS = (
+    "fp32",
+    "fp32_cl",
+    "fp32_cn_cl",
+    "bf16",
+    "bf16_cl",
+    "bf16_net",
+    "bf16_net_in",
+    "bf16_net_in_cl",
+)
 
 
 OVERLAPS = (0.75, 0.5)
@@ -60,35 +74,41 @@ def bench(
     """``{variant: windows/s (median)}`` plus the per-repeat times, interleaved A, B, ...,
     the projection per variant and overlap, and (``e2e_pings > 0``) the pipeline's rate."""
     from sss2bathy.data.cnn_normals import cpu_has_native_bf16, inference_net
-    from sss2bathy.models.normal_cnn import NormalResNet
+    from sss2bathy.models.normal_cnn import NormalResNet, channel_norm_copy
 
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
         raise ValueError(f"variants: expected some of {VARIANTS}, found {bad}")
     torch.manual_seed(seed)
     net = NormalResNet(in_channels=1, base_width=base_width, n_blocks=n_blocks).eval()
-    nets = {"cl": net.to(memory_format=torch.channels_last)}
     x = torch.randn(batch, 1, *window)
-    inputs = {"": x, "cl": x.contiguous(memory_format=torch.channels_last)}
-    contiguous = NormalResNet(in_channels=1, base_width=base_width, n_blocks=n_blocks).eval()
-    contiguous.load_state_dict(net.state_dict())
-    nets[""] = contiguous
-    for fmt in ("", "cl"):  # the bfloat16 copies predict_waterfall runs
-        if "bf16_net" + (fmt and "_cl") in variants:
-            nets[f"net{fmt}"] = inference_net(nets[fmt], "cpu", "bf16")[0]
-            inputs[f"net{fmt}"] = inputs[fmt].to(torch.bfloat16)
+    cl = torch.channels_last
+    x_cl, x_bf16 = x.contiguous(memory_format=cl), x.to(torch.bfloat16)
+    # (network, input) of each variant; autocast variants run the fp32 networks under it
+    runs = {
+        "fp32": lambda: (net, x),
+        "fp32_cl": lambda: (copy.deepcopy(net).to(memory_format=cl), x_cl),
+        "fp32_cn_cl": lambda: (channel_norm_copy(net).to(memory_format=cl), x_cl),
+        "bf16": lambda: (net, x),
+        "bf16_cl": lambda: (copy.deepcopy(net).to(memory_format=cl), x_cl),
+        "bf16_net": lambda: (inference_net(net, "cpu", "bf16")[0], x_bf16),
+        "bf16_net_in": lambda: (copy.deepcopy(net).to(torch.bfloat16), x_bf16),
+        "bf16_net_in_cl": lambda: (
+            copy.deepcopy(net).to(torch.bfloat16).to(memory_format=cl),
+            x_bf16.contiguous(memory_format=cl),
+        ),
+    }
+    nets = {v: runs[v]() for v in variants}
 
     def run(variant: str) -> tuple[float, float]:
-        fmt = "cl" if variant.endswith("_cl") else ""
-        if variant.startswith("bf16_net"):
-            fmt = "net" + fmt
+        model, inp = nets[variant]
         autocast = variant in ("bf16", "bf16_cl")
         t0, c0 = time.perf_counter(), time.process_time()
         with (
             torch.inference_mode(),
             torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast),
         ):
-            nets[fmt](inputs[fmt])
+            model(inp)
         return time.perf_counter() - t0, time.process_time() - c0
 
     for v in variants:  # warm-up (oneDNN primitive creation)
@@ -128,7 +148,7 @@ def bench(
         "times_s": times,
     }  # fmt: skip
     if e2e_pings > 0:
-        out["e2e"] = pipeline(nets[""], med, window, e2e_pings, e2e_batch, variants, seed)
+        out["e2e"] = pipeline(net, med, window, e2e_pings, e2e_batch, variants, seed)
     return out
 
 

@@ -60,6 +60,7 @@ from sss2bathy.data.masks import (
     sonar_only_mask,
 )
 from sss2bathy.data.windows import line_windows
+from sss2bathy.models.normal_cnn import channel_norm_copy
 from sss2bathy.survey import MASK_VALID, Survey
 from sss2bathy.utils.atomic import atomic_path, file_sha256, stable_hash
 from sss2bathy.utils.checkpoints import RUNS_PATTERNS, find_checkpoints, run_scale
@@ -302,8 +303,13 @@ def inference_net(
     input and weights to bfloat16 on each call and leaves the normalisations' outputs in
     float32, so a third of the paper network's time went to those casts (``aten::copy_``
     in a profile); the copy gives the same convolutions in bfloat16 without them
-    (``benchmarks/cnn_inference.py``: variants ``bf16`` (autocast) and ``bf16_net``).
-    On a CPU without native bfloat16 a warning says it is emulated and far slower."""
+    (``benchmarks/cnn_inference.py``: variants ``bf16`` (autocast) and ``bf16_net_in``).
+    On a CPU the copy is also channels-last with its instance norms computed as per-channel
+    group norms (:func:`~sss2bathy.models.normal_cnn.channel_norm_copy`: the same function):
+    oneDNN runs bfloat16 convolutions channels-last, and ``InstanceNorm2d`` copied each such
+    output back to contiguous (variant ``bf16_net``, the one run here, against
+    ``bf16_net_in``). On a CPU without native bfloat16 a warning says it is emulated and
+    far slower."""
     check_precision(precision)
     dtype = PRECISIONS[precision]
     if dtype is None:
@@ -319,7 +325,11 @@ def inference_net(
             "(benchmarks/cnn_inference.py); use fp32 on this machine",
             torch.backends.cpu.get_cpu_capability(),
         )
-    low = copy.deepcopy(net).to(device=dev, dtype=dtype).eval()
+    if dev.type == "cpu":
+        low = channel_norm_copy(net).to(device=dev, dtype=dtype)
+        low = low.to(memory_format=torch.channels_last).eval()
+    else:
+        low = copy.deepcopy(net).to(device=dev, dtype=dtype).eval()
     return low, dtype
 
 
@@ -527,7 +537,13 @@ def predict_normals(
     }
     if precision != "fp32":  # float32 keys stay those of earlier caches
         key_fields["precision"] = precision
-        key_fields["run"] = "cast copy"  # inference_net, not autocast (earlier bf16 caches)
+        # inference_net's network (earlier bf16 caches: "cast copy" with InstanceNorm2d,
+        # before that autocast)
+        key_fields["run"] = (
+            "cast copy, channels-last channel norm"
+            if torch.device(device).type == "cpu"
+            else "cast copy"
+        )
     key = stable_hash(key_fields)
     cache_dir = Path(survey_dir) / "predictions" / key
     net: nn.Module | None = None

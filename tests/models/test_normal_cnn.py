@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from sss2bathy.losses import NormalLoss
-from sss2bathy.models.normal_cnn import NormalResNet
+from sss2bathy.models.normal_cnn import ChannelNorm, NormalResNet, channel_norm_copy
 
 
 def test_output_shape_dtype_and_range():
@@ -82,3 +82,28 @@ def test_tiny_network_overfits_one_window():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < losses[0] / 10
+
+
+def test_channel_norm_is_instance_norm_in_either_memory_format():
+    x = torch.randn(3, 5, 8, 12) * 4 + 1
+    ref = torch.nn.InstanceNorm2d(5, affine=False, track_running_stats=False)(x)
+    norm = ChannelNorm(1e-5)
+    torch.testing.assert_close(norm(x), ref, atol=1e-5, rtol=1e-5)
+    cl = norm(x.contiguous(memory_format=torch.channels_last))
+    assert cl.is_contiguous(memory_format=torch.channels_last)  # read as it is, no copy back
+    torch.testing.assert_close(cl, ref, atol=1e-5, rtol=1e-5)
+
+
+def test_channel_norm_copy_replaces_plain_instance_norms_only():
+    torch.manual_seed(0)
+    net = NormalResNet(base_width=4, n_blocks=1).eval()
+    extra = torch.nn.Sequential(net, torch.nn.InstanceNorm2d(1, affine=True))
+    copy = channel_norm_copy(extra)
+    n_plain = sum(isinstance(m, torch.nn.InstanceNorm2d) and not m.affine for m in extra.modules())
+    assert n_plain > 0 and sum(isinstance(m, ChannelNorm) for m in copy.modules()) == n_plain
+    kept = [m for m in copy.modules() if isinstance(m, torch.nn.InstanceNorm2d)]
+    assert len(kept) == 1 and kept[0].affine  # an affine one is not the same function
+    assert any(isinstance(m, torch.nn.InstanceNorm2d) for m in net.modules())  # net unchanged
+    x = torch.randn(2, 1, 16, 32)
+    with torch.inference_mode():
+        torch.testing.assert_close(copy[0](x), net(x), atol=1e-5, rtol=1e-5)
