@@ -222,22 +222,17 @@ class _Fan:
         th_lo = f32(self.th_lo)
         out = np.empty((*th_hi.shape, self.n_rays), f32)
         tail = out[..., self.n_uniform :]
-        if _use_numba():  # the same float32 steps, compiled, and a merge for the sort
+        if _use_numba():  # the same float32 steps in one compiled pass
             from sss2bathy.draping import kernels
 
             kernels.fan_ramps(th_lo, th_hi, hc, rho_hi, *self._ramps, out)
-            np.arccos(tail, out=tail)
-            merged = np.empty_like(out)
-            if kernels.fan_merge(out, self.n_uniform, theta_down, merged):
-                return merged
-            out.sort(axis=-1)
-            return out
-        np.multiply((th_hi - th_lo)[..., None], self._ramps[0], out=out[..., : self.n_uniform])
-        out[..., : self.n_uniform] += th_lo
-        np.multiply((rho_hi - hc)[..., None], self._ramps[1], out=tail)
-        tail += hc[..., None]  # range-uniform ranges ...
-        np.divide(hc[..., None], tail, out=tail)
-        np.clip(tail, -1.0, 1.0, out=tail)
+        else:
+            np.multiply((th_hi - th_lo)[..., None], self._ramps[0], out=out[..., : self.n_uniform])
+            out[..., : self.n_uniform] += th_lo
+            np.multiply((rho_hi - hc)[..., None], self._ramps[1], out=tail)
+            tail += hc[..., None]  # range-uniform ranges ...
+            np.divide(hc[..., None], tail, out=tail)
+            np.clip(tail, -1.0, 1.0, out=tail)
         np.arccos(tail, out=tail)
         np.subtract(theta_down[..., None], tail, out=tail)  # ... and their angles
         out.sort(axis=-1)

@@ -1,8 +1,7 @@
 """Compiled (numba) parts of draping: fan angles, embree's first-hit call, bookkeeping.
 
-:meth:`sss2bathy.draping.drape._Fan.angles` builds the fans with :func:`fan_ramps` and
-:func:`fan_merge` (numpy's float32 steps and a merge of two sorted runs for its sort; the
-``arccos`` stays numpy's). :func:`embree_first_hits` is embree's ``rtcIntersect1`` per ray
+:meth:`sss2bathy.draping.drape._Fan.angles` builds the fans with :func:`fan_ramps`
+(numpy's float32 steps in one pass; ``arccos`` and the sort stay numpy's). :func:`embree_first_hits` is embree's ``rtcIntersect1`` per ray
 on embreex's own scene, giving faces and distances without embreex's per-call output
 arrays (:meth:`sss2bathy.draping.surface.DrapeSurface.cast`).
 :func:`sss2bathy.draping.drape._drape_chunk` casts the fans with embree, then calls
@@ -81,50 +80,6 @@ def fan_ramps(th_lo, th_hi, hc, rho_hi, ramp_u, ramp_r, out):  # pragma: no cove
                 elif x > 1.0:
                     x = np.float32(1.0)
                 out[p, h, n_u + i] = x
-
-
-@njit(**_JIT)
-def fan_merge(parts, n_u, theta_down, out):  # pragma: no cover - compiled
-    """``_Fan.angles``' sorted fans from ``parts`` (:func:`fan_ramps`, the tail's arccos
-    taken): the uniform angles (ascending) merged with ``theta_down - arccos`` of the
-    range-uniform part (descending). Returns False where a part is not monotonic or holds
-    NaN: then ``out`` is not filled and ``parts`` holds the unsorted angles, for
-    ``np.sort``."""
-    n, M = parts.shape[1], parts.shape[2]
-    for p in range(parts.shape[0]):
-        for h in range(n):
-            a = parts[p, h]
-            td = theta_down[p, h]
-            for i in range(n_u, M):
-                a[i] = td - a[i]
-    for p in range(parts.shape[0]):
-        for h in range(n):
-            a = parts[p, h]
-            for i in range(n_u - 1):
-                if not a[i] <= a[i + 1]:
-                    return False
-            for i in range(n_u, M - 1):
-                if not a[i] >= a[i + 1]:
-                    return False
-            o = out[p, h]
-            i, j, q = 0, M - 1, 0  # ascending part from the front, descending from the back
-            while i < n_u and j >= n_u:
-                if a[j] < a[i]:
-                    o[q] = a[j]
-                    j -= 1
-                else:
-                    o[q] = a[i]
-                    i += 1
-                q += 1
-            while i < n_u:
-                o[q] = a[i]
-                i += 1
-                q += 1
-            while j >= n_u:
-                o[q] = a[j]
-                j -= 1
-                q += 1
-    return True
 
 
 @njit(**_JIT)

@@ -1,7 +1,7 @@
 """The compiled fan set-up and ray cast of draping against the paths they replace, to the
 bit: embree's ``rtcIntersect1`` called from compiled code on embreex's scene
 (``surface.DIRECT_EMBREE``) against embreex's full-output call, the compiled fan angles
-(``fan_ramps`` + ``fan_merge``) against the numpy ones, and ``DrapedLine.validate``."""
+(``fan_ramps``) against the numpy ones, and ``DrapedLine.validate``."""
 
 from __future__ import annotations
 
@@ -59,41 +59,22 @@ def test_compiled_fan_angles_match_numpy(monkeypatch, surface):
     line = _line()
     range_m = line.range_m.astype(np.float64)
     fan = drape_mod._Fan(line, surface, range_m, float(np.diff(range_m)[0]), DrapeConfig())
-    merged = []
-    merge = kernels.fan_merge
+    ramps = []
+    compiled = kernels.fan_ramps
 
     def spy(*args):
-        merged.append(merge(*args))
-        return merged[-1]
+        ramps.append(True)
+        return compiled(*args)
 
-    monkeypatch.setattr(kernels, "fan_merge", spy)
+    monkeypatch.setattr(kernels, "fan_ramps", spy)
     monkeypatch.setattr(drape_mod, "BOOKKEEPING", "numpy")
     ref = fan.angles(slice(2, 13))
+    assert not ramps
     monkeypatch.setattr(drape_mod, "BOOKKEEPING", "numba")
     got = fan.angles(slice(2, 13))
-    assert merged == [True]
+    assert ramps
     assert np.all(np.diff(got, axis=-1) >= 0)
     np.testing.assert_array_equal(_bits(got), _bits(ref))
-
-
-def test_fan_merge_declines_unsorted_or_nan_parts():
-    n_u = 4
-    good = np.array([[[0.0, 0.1, 0.5, 0.9, 0.2, 0.4, 0.7]]], np.float32)  # tail: arccos
-    td = np.zeros((1, 1), np.float32)
-    out = np.empty_like(good)
-    parts = good.copy()
-    assert kernels.fan_merge(parts, n_u, td, out)
-    np.testing.assert_array_equal(out, np.sort(parts, axis=-1))
-    for bad in (2, 5):  # a non-monotonic or NaN entry in either part
-        for value in (np.nan, 0.05):
-            parts = good.copy()
-            parts[0, 0, bad] = value
-            assert not kernels.fan_merge(parts, n_u, td, out)
-            # parts now holds every angle (the tail's theta_down - arccos), for np.sort
-            want = good.copy()
-            want[0, 0, bad] = value
-            want[0, 0, n_u:] = td[0, 0] - want[0, 0, n_u:]
-            np.testing.assert_array_equal(_bits(parts), _bits(want))
 
 
 def _draped(P: int = 3, B: int = 5) -> dict[str, np.ndarray]:
