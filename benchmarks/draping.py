@@ -4,8 +4,10 @@ Builds a seeded rough seabed (hills and boulders, 0.5 m cells) and one straight 
 (:func:`bench_terrain`, :func:`bench_line`), drapes it while recording every ray the
 draping casts (:func:`record_rays`), then casts exactly those rays again with the bare
 intersector (embreex's first-hit call on float32 rays already in the scene's frame, no
-bookkeeping; :func:`raw_cast`) — the limit draping could reach — and through trimesh's
-embree wrapper (:func:`trimesh_cast`, the previous baseline): rays/s of each and ratios.
+bookkeeping; :func:`raw_cast`) — the limit draping could reach —, through draping's own
+cast (:func:`direct_cast`: embree's ``rtcIntersect1`` called from numba, faces and
+distances; about the cost of the bare ids-only call) and through trimesh's embree
+wrapper (:func:`trimesh_cast`, the previous baseline): rays/s of each and ratios.
 """
 
 from __future__ import annotations
@@ -115,6 +117,24 @@ def raw_cast(surface: DrapeSurface, batches: RayBatches) -> Callable[[], None]:
     return cast_triangle
 
 
+def direct_cast(surface: DrapeSurface, batches: RayBatches) -> Callable[[], None] | None:
+    """The recorded rays through draping's own cast: embree's ``rtcIntersect1`` called from
+    compiled code on embreex's scene, faces and distances (rays prepared outside the
+    timing, as for :func:`raw_cast`); ``None`` where draping does not use it."""
+    scene = surface.intersector
+    if surface.engine != "embree":
+        return None
+    ready = [(scene.origins(o), np.ascontiguousarray(d, np.float32), r) for o, d, r in batches]
+    if scene.first_hits_direct(*ready[0]) is None:
+        return None
+
+    def cast() -> None:
+        for o32, d32, r in ready:
+            scene.first_hits_direct(o32, d32, r)
+
+    return cast
+
+
 def trimesh_cast(surface: DrapeSurface, batches: RayBatches) -> Callable[[], None] | None:
     """The recorded rays through trimesh's embree wrapper (``intersects_first``, float64
     world inputs; it converts, normalises and scales per call); ``None`` without embree."""
@@ -163,6 +183,9 @@ def bench_drape(
         "drape": lambda: drape_line(line, surface, cfg),
         "raw": raw_cast(surface, batches),
     }
+    direct = direct_cast(surface, batches)
+    if direct is not None:
+        fns["direct"] = direct
     wrapped = trimesh_cast(surface, batches)
     if wrapped is not None:
         fns["trimesh"] = wrapped
@@ -183,6 +206,21 @@ def bench_drape(
             "target >= 80 % (issue #20)",
         ),
     ]
+    if "direct" in times:
+        t_direct = times["direct"]
+        figures += [
+            figure(
+                "direct embree rays/s",
+                "rays/s",
+                rates(n_rays, t_direct),
+                "same rays, draping's own cast (rtcIntersect1 from numba; faces and distances)",
+            ),
+            figure(
+                "draping / direct embree",
+                "%",
+                [100 * c / d for c, d in zip(t_direct, t_drape, strict=True)],
+            ),
+        ]
     if "trimesh" in times:
         t_wrap = times["trimesh"]
         figures += [

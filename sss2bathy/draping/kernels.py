@@ -1,20 +1,22 @@
 """Compiled (numba) parts of draping: fan angles, embree's first-hit call, bookkeeping.
 
-:meth:`sss2bathy.draping.drape._Fan.angles` builds the fans with :func:`fan_ramps`
-(numpy's float32 steps in one pass; ``arccos`` and the sort stay numpy's). :func:`embree_first_hits` is embree's ``rtcIntersect1`` per ray
-on embreex's own scene, giving faces and distances without embreex's per-call output
-arrays (:meth:`sss2bathy.draping.surface.DrapeSurface.cast`).
-:func:`sss2bathy.draping.drape._drape_chunk` casts the fans with embree, then calls
+Per chunk of pings :func:`sss2bathy.draping.drape._drape_chunk` builds the fans
+(:meth:`~sss2bathy.draping.drape._Fan.angles`: :func:`fan_ramps` does numpy's float32
+steps in one pass; ``arccos``, ``cos``, ``sin`` and the sort stay numpy's), casts them
+(:meth:`~sss2bathy.draping.surface.DrapeSurface.cast`, which runs
+:func:`embree_first_hits`: embree's ``rtcIntersect1`` per ray on embreex's own scene,
+faces and distances without embreex's per-call output arrays), then calls
 :func:`fan_brackets` (bin counts of the first hits and the ray pairs to check for an
-occlusion), casts the middle rays of those pairs with embree, and calls
+occlusion), casts the middle rays of those pairs (:func:`mid_rays`) and calls
 :func:`drape_fans`, which loops over fans (ping, head), their ray pairs and bins and
 writes points, ``n_lat``, grazing angles and masks. No large temporaries: per fan a few
 arrays of one fan's rays or bins, reused.
 
-The arithmetic repeats the numpy reference (``_post_cast_numpy`` in ``drape.py``)
-operation by operation, in the same precision (float32 where it is float32 there, the
-same summation order as ``np.einsum``'s), so results agree to the last bit up to the
-libm functions (``cos``, ``sin``, ``atan2``, ``hypot``, ``acos``) numpy and LLVM call.
+The arithmetic repeats the numpy reference (``_post_cast_numpy`` and the numpy fan
+set-up in ``drape.py``) operation by operation, in the same precision (float32 where it
+is float32 there, the same summation order as ``np.einsum``'s; LLVM does not fuse
+multiply-adds without fastmath), so results agree to the last bit up to the libm
+functions (``cos``, ``sin``, ``atan2``, ``hypot``, ``acos``) numpy and LLVM call.
 """
 
 from __future__ import annotations
@@ -117,6 +119,23 @@ def fan_brackets(theta, tri, rho, range_m, uniform, r0, inv_step, jump_thr):  # 
                 t_check[n] = half * (theta[k, j] + theta[k, j + 1])
                 n += 1
     return kbin, k_c[:n], j_c[:n], t_check[:n]
+
+
+@njit(**_JIT)
+def mid_rays(cos_t, sin_t, k_c, u, v, s):  # pragma: no cover - compiled
+    """Origins ``s[k_c]`` and float32 directions ``cos_t u[k_c] + sin_t v[k_c]`` of the
+    checked pairs' middle rays, as numpy forms them (``cos_t``, ``sin_t``: numpy's float32
+    cosine and sine, products and sum in float64, then rounded to float32)."""
+    n = k_c.shape[0]
+    origins = np.empty((n, 3))
+    dirs = np.empty((n, 3), np.float32)
+    for i in range(n):
+        k = k_c[i]
+        c, sn = np.float64(cos_t[i]), np.float64(sin_t[i])
+        for j in range(3):
+            origins[i, j] = s[k, j]
+            dirs[i, j] = np.float32(c * u[k, j] + sn * v[k, j])
+    return origins, dirs
 
 
 # Embree's single-ray first-hit query ``rtcIntersect1(scene, rayhit, args)``, bound by

@@ -96,3 +96,30 @@ def test_validate_rejects_any_non_finite_coordinate_at_valid_bins(value, coord):
         DrapedLine(**arrays)
     arrays["mask"][1, 0, 2] = MASK_NO_HIT  # not a valid bin: allowed
     DrapedLine(**arrays)
+
+
+def test_mid_rays_match_numpy():
+    rs = np.random.default_rng(3)
+    K, n = 20, 500
+    u = rs.normal(size=(K, 6))[:, ::2]  # strided, like fan slices may be
+    v, s = rs.normal(size=(K, 3)), rs.normal(size=(K, 3)) * 100
+    k_c = np.sort(rs.integers(0, K, n))
+    t = rs.uniform(-0.5, 2.0, n).astype(np.float32)
+    cos_t, sin_t = np.cos(t), np.sin(t)
+    origins, dirs = kernels.mid_rays(cos_t, sin_t, k_c, u, v, s)
+    want = (cos_t[:, None] * u[k_c] + sin_t[:, None] * v[k_c]).astype(np.float32)
+    np.testing.assert_array_equal(origins, s[k_c])
+    assert dirs.dtype == np.float32
+    np.testing.assert_array_equal(_bits(dirs), _bits(want))
+
+
+def test_benchmark_direct_cast_runs_on_recorded_rays(surface):
+    from benchmarks.draping import direct_cast, record_rays
+
+    batches = record_rays(_line(n_pings=4), surface, DrapeConfig(pings_per_chunk=2))
+    cast = direct_cast(surface, batches)
+    if surface.engine != "embree":
+        assert cast is None
+        return
+    assert cast is not None
+    cast()
