@@ -6,6 +6,7 @@ import ctypes
 import gc
 import logging
 import os
+import platform
 import sys
 from pathlib import Path
 from typing import Any
@@ -117,7 +118,7 @@ def _embree_scene_pointer(scene: _EmbreeScene) -> int:
         return 0
     es = scene.scene
     try:
-        if scene.scene.is_committed == 0:  # embreex builds the BVH on its first query
+        if es.is_committed == 0:  # embreex builds the BVH on its first query
             es.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
         word = ctypes.sizeof(ctypes.c_void_p)
         devices = [r for r in gc.get_referents(es) if type(r).__name__ == "EmbreeDevice"]
@@ -125,6 +126,8 @@ def _embree_scene_pointer(scene: _EmbreeScene) -> int:
         if not (
             sys.implementation.name == "cpython"
             and word == 8
+            # the kernel passes pointers as 64-bit integers: same registers on these
+            and platform.machine().lower() in ("x86_64", "amd64", "aarch64", "arm64")
             and type(es).__basicsize__ == 40
             and len(devices) == 1
             and type(devices[0]).__basicsize__ == 24
@@ -289,7 +292,9 @@ class DrapeSurface:
         Returns:
             ``(K * repeat,)`` face index, -1 where the ray misses; with ``distances`` also
             the distance to the hit in units of the direction's length (m for unit
-            directions; NaN = miss). Embree's distances are float32 and carry the scene's
+            directions; NaN = miss), by embree's ``rtcIntersect1`` from compiled code
+            where available (``DIRECT_EMBREE``), else embreex's full-output call (same
+            bits). Embree's distances are float32 and carry the scene's
             float32 precision (about 1e-7 of the mesh extent): exact hits come from
             :meth:`first_hits` or from the face planes.
         """

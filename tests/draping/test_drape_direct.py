@@ -123,3 +123,18 @@ def test_benchmark_direct_cast_runs_on_recorded_rays(surface):
         return
     assert cast is not None
     cast()
+
+
+def test_scene_pointer_refuses_objects_it_does_not_recognise():
+    class Fake:
+        is_committed = 1
+
+        def run(self, *args, **kwargs):  # pragma: no cover - not reached
+            raise AssertionError("not an embree scene")
+
+    class Holder:
+        scene = Fake()
+
+    assert surface_mod._embree_scene_pointer(Holder()) == 0
+    del Fake.is_committed
+    assert surface_mod._embree_scene_pointer(Holder()) == 0
