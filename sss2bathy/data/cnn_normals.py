@@ -13,10 +13,11 @@ the end), the windows run through the network in batches, and overlapping predic
 averaged back into the ``(P, 2, B)`` waterfall (one ``bincount`` per head, no loop over
 windows). Lines shorter than a window are zero-padded (and the padding cropped off).
 Inference overlap 0.5 instead of the training 0.75 halves the windows (the cost); bf16
-``precision`` (a bfloat16 copy of the network, :func:`inference_net`) divides each window's
-cost by ~2.9 (batches of 8) on a CPU with AMX but multiplies it ~170x on an AVX2-only CPU
-(emulated; :func:`cpu_has_native_bf16`, a warning) (``python -m benchmarks.cnn_inference``;
-accuracy: ``python -m benchmarks.cnn_inference_accuracy``).
+``precision`` (a bfloat16 copy of the network, channels-last with per-channel group norms
+on a CPU, :func:`inference_net`) divides each window's cost by ~4.3 (batches of 8, 2
+threads) on a CPU with AMX but multiplies it ~170x on an AVX2-only CPU (emulated;
+:func:`cpu_has_native_bf16`, a warning) (``python -m benchmarks.cnn_inference``; accuracy:
+``python -m benchmarks.cnn_inference_accuracy``).
 
 Inputs come from the sidescan alone, exactly as in training
 (:class:`sss2bathy.data.windows.WindowLine`): the intensity is normalised over the bins
@@ -251,10 +252,10 @@ def predict_waterfall(
         overlap: fraction of a window shared with the next, in [0, 1).
         batch_size: windows per forward pass.
         precision: ``"fp32"`` or ``"bf16"`` (a bfloat16 copy of ``net`` on bfloat16
-            windows, :func:`inference_net`: 2.9x the windows/s of float32 for the paper
+            windows, :func:`inference_net`: ~4.3x the windows/s of float32 for the paper
             network on an AMX CPU, but ~170x slower on an AVX2-only CPU, where it is
             emulated: a warning says so; ``benchmarks/cnn_inference.py``; n_lat changes by
-            ~2e-4 on average, at most ~4e-3, on a trained demo net: README).
+            ~4e-4 on average, at most ~3e-3, on the trained demo net: README).
 
     Returns:
         ``(P, 2, B)`` float32 prediction for every bin (masking is the caller's).
