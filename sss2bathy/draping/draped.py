@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,6 +68,8 @@ class DrapedLine:
                 raise SurveyFormatError(file, name, f"shape {m.shape}", arr.shape)
         if self.points.shape != (*m.shape, 3):
             raise SurveyFormatError(file, "points", f"shape {(*m.shape, 3)}", self.points.shape)
+        if _values_ok_compiled(m, self.n_lat, self.points):
+            return
         if np.any(m & ~np.uint8(_ALL_BITS)):
             raise SurveyFormatError(file, "mask", f"bits within {_ALL_BITS:#x}", int(m.max()))
         valid = m == MASK_VALID
@@ -131,3 +134,28 @@ class DrapedLine:
         out.grazing_rad, out.mask, out.meta = arrays["grazing_rad"], arrays["mask"], meta
         out.validate(path)
         return out
+
+
+def _values_ok_compiled(mask: np.ndarray, n_lat: np.ndarray, points: np.ndarray) -> bool:
+    """:meth:`DrapedLine.validate`'s value checks in one compiled pass
+    (:func:`sss2bathy.draping.kernels.draped_values_ok`): True where they pass; False
+    where they fail or the pass is not run, and numpy's checks decide (and name the
+    failure). Run only where draping's kernels are already loaded (a process that drapes,
+    so loading a saved line does not import numba) and the arrays are C-contiguous."""
+    kernels = sys.modules.get("sss2bathy.draping.kernels")
+    if kernels is None or not all(a.flags.c_contiguous for a in (mask, n_lat, points)):
+        return False
+    from sss2bathy.draping.drape import _use_numba
+
+    if not _use_numba():
+        return False
+    return bool(
+        kernels.draped_values_ok(
+            mask,
+            n_lat,
+            points,
+            np.uint8(~_ALL_BITS & 0xFF),
+            np.uint8(MASK_VALID),
+            np.float32(1.0 + 1e-5),
+        )
+    )

@@ -535,3 +535,34 @@ def drape_fans(
         for b in range(B):
             if w_ok[b]:
                 graz_out[k, b] = np.pi / 2 - math.acos(w_cos[b])
+
+
+@njit(**_JIT)
+def draped_values_ok(mask, n_lat, points, bad_bits, valid, n_lat_max):  # pragma: no cover
+    """Whether ``DrapedLine.validate``'s value checks pass, in one pass.
+
+    Args:
+        mask, n_lat, points: C-contiguous ``(P, 2, B)`` uint8, float32 and ``(P, 2, B, 3)``
+            float32 arrays (shapes already checked).
+        bad_bits: uint8 bits no mask may have; valid: the mask of a valid bin.
+        n_lat_max: float32 bound of ``|n_lat|`` at valid bins (compared in float32, as
+            numpy compares a float32 array with a Python float).
+
+    Returns:
+        True where no mask has a bad bit and every valid bin has ``|n_lat| <= n_lat_max``
+        (not NaN) and three finite coordinates; False otherwise (numpy then names it).
+    """
+    m = mask.reshape(-1)
+    nl = n_lat.reshape(-1)
+    pts = points.reshape(-1)
+    for i in range(m.shape[0]):
+        mi = m[i]
+        if mi & bad_bits:
+            return False
+        if mi == valid:
+            if not abs(nl[i]) <= n_lat_max:
+                return False
+            p0, p1, p2 = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
+            if not (math.isfinite(p0) and math.isfinite(p1) and math.isfinite(p2)):
+                return False
+    return True

@@ -1,7 +1,8 @@
 """The compiled fan set-up and ray cast of draping against the paths they replace, to the
 bit: embree's ``rtcIntersect1`` called from compiled code on embreex's scene
 (``surface.DIRECT_EMBREE``) against embreex's full-output call, the compiled fan angles
-(``fan_ramps``) against the numpy ones, and ``DrapedLine.validate``."""
+(``fan_ramps``) against the numpy ones, and ``DrapedLine.validate`` (its one-pass
+compiled check against numpy's)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 import sss2bathy.draping.drape as drape_mod
+import sss2bathy.draping.draped as draped_mod
 import sss2bathy.draping.surface as surface_mod
 from sss2bathy.draping import DrapeConfig, DrapedLine, DrapeSurface, drape_line, kernels
 from sss2bathy.survey import MASK_NO_HIT, SurveyFormatError
@@ -96,6 +98,56 @@ def test_validate_rejects_any_non_finite_coordinate_at_valid_bins(value, coord):
         DrapedLine(**arrays)
     arrays["mask"][1, 0, 2] = MASK_NO_HIT  # not a valid bin: allowed
     DrapedLine(**arrays)
+
+
+def _numpy_validate_passes(monkeypatch, arrays: dict[str, np.ndarray]) -> bool:
+    with monkeypatch.context() as m:
+        m.setattr(draped_mod, "_values_ok_compiled", lambda *a: False)
+        try:
+            DrapedLine(**arrays)
+        except SurveyFormatError:
+            return False
+    return True
+
+
+def _bad_cases() -> list[tuple[str, tuple, float]]:
+    lim = np.float32(1.0 + 1e-5)  # numpy compares float32 |n_lat| with it in float32
+    above = np.nextafter(lim, np.float32(2.0))
+    return [
+        ("mask", (1, 0, 2), 64),
+        ("mask", (2, 1, 4), 0x80 | MASK_NO_HIT),
+        *[("n_lat", (0, 1, 3), x) for x in (np.nan, np.inf, -2.0, lim, -lim, above, -above)],
+        *[("points", (1, 1, 1, c), x) for c in range(3) for x in (np.nan, np.inf, -np.inf)],
+    ]
+
+
+@pytest.mark.parametrize("invalid_bin", [False, True])
+@pytest.mark.parametrize("case", range(len(_bad_cases())))
+def test_compiled_validate_agrees_with_numpy(monkeypatch, case, invalid_bin):
+    # the one-pass compiled check decides exactly where numpy's checks pass
+    name, idx, value = _bad_cases()[case]
+    arrays = _draped()
+    arrays[name][idx] = value
+    if invalid_bin and name != "mask":
+        arrays["mask"][idx[:3]] = MASK_NO_HIT  # not a valid bin: anything goes
+    want = _numpy_validate_passes(monkeypatch, arrays)
+    a = {k: np.asarray(v) for k, v in arrays.items()}
+    assert draped_mod._values_ok_compiled(a["mask"], a["n_lat"], a["points"]) == want
+    if want:
+        DrapedLine(**arrays)
+    else:
+        with pytest.raises(SurveyFormatError, match=name):
+            DrapedLine(**arrays)
+
+
+def test_compiled_validate_runs_only_where_it_can(monkeypatch):
+    a = _draped()
+    assert draped_mod._values_ok_compiled(a["mask"], a["n_lat"], a["points"])  # kernels loaded
+    strided = np.asfortranarray(a["n_lat"])
+    assert not draped_mod._values_ok_compiled(a["mask"], strided, a["points"])
+    DrapedLine(a["points"], strided, a["grazing_rad"], a["mask"])  # numpy decides
+    monkeypatch.setattr(drape_mod, "BOOKKEEPING", "numpy")
+    assert not draped_mod._values_ok_compiled(a["mask"], a["n_lat"], a["points"])
 
 
 def test_mid_rays_match_numpy():
