@@ -357,8 +357,14 @@ def drape_fans(
             # bracket narrower than 1 rad (|t - t_mid| > pi / 2 - 0.5 - 1e-6 > t_half)
             if abs(tb - ta) < 1.0:
                 ca0, sa0 = np.float64(cs[k, j, 0]), np.float64(cs[k, j, 1])
+                # nor can roots more than phi away: |t - t_mid| > t_half + _EPS_T + 1e-6
+                # (the series' error); tested as |cross| > tan(phi) dot, with margins for
+                # the float32 direction (< 4e-7 rad) and rounding, and the upper bound
+                # phi / (1 - phi^2 / 2.4) >= tan(phi) (phi < 1.5): no atan2 for them
+                phi = 1.05 * abs(tb - ta) + 2e-5
+                far = 1.0001 * phi / (1.0 - phi * phi / 2.4)
             else:
-                ca0, sa0 = 0.0, 0.0
+                ca0, sa0, far = 0.0, 0.0, np.inf  # (dot = 0: far * dot is NaN)
             n_faces = 2 if tri_a != tri_b else 1
             for f in range(n_faces):  # per face: _Roots.update's terms that skip r
                 A, Bc, C = _arc_abc(face_planes, tri_a if f == 0 else tri_b, uk, vk, sk)
@@ -384,7 +390,8 @@ def drape_fans(
                         else:
                             y = (ca + wb) * inv
                             z = (cb - wa) * inv
-                        if y * ca0 + z * sa0 < 0.0:
+                        dot = y * ca0 + z * sa0
+                        if dot < 0.0 or abs(ca0 * z - sa0 * y) > far * dot:
                             continue  # far outside the bracket
                         t, exact = _root_angle(y, z, ca0, sa0, ta)
                         e = 0.0 if exact else _EPS_T

@@ -151,6 +151,13 @@ def test_fast_root_angles_are_within_their_margin():
     assert n_fast > 0.9 * ta.size and worst < 1e-6
 
 
+def test_far_root_bound_is_above_tan():
+    # drape_fans skips roots with |cross| > far * dot, far = phi / (1 - phi^2 / 2.4) (times
+    # 1.0001), phi <= 1.05 + 2e-5 rad: far must not be below tan(phi) anywhere there
+    phi = np.linspace(0.0, 1.06, 1_000_001)
+    assert np.all(phi / (1.0 - phi * phi / 2.4) >= np.tan(phi))
+
+
 def test_bookkeeping_switch_is_checked(monkeypatch, make_plane, make_line):
     monkeypatch.setattr(drape_mod, "BOOKKEEPING", "fortran")
     with pytest.raises(ValueError, match="BOOKKEEPING: expected 'numba' or 'numpy'"):
