@@ -9,8 +9,12 @@ faces and distances without embreex's per-call output arrays), then calls
 :func:`fan_brackets` (bin counts of the first hits and the ray pairs to check for an
 occlusion), casts the middle rays of those pairs (:func:`mid_rays`) and calls
 :func:`drape_fans`, which loops over fans (ping, head), their ray pairs and bins and
-writes points, ``n_lat``, grazing angles and masks. No large temporaries: per fan a few
-arrays of one fan's rays or bins, reused.
+writes points, ``n_lat``, grazing angles and masks (per fan: the pairs that cross a bin
+listed first; roots provably outside a pair's bracket skipped, the others' angles from a
+fast arctangent wherever that decides, else ``atan2``; ``hypot`` and ``acos`` in loops of
+their own). No large temporaries: per fan a few arrays of one fan's rays or bins, reused.
+:func:`draped_values_ok` runs
+``DrapedLine.validate``'s value checks in one pass.
 
 The arithmetic repeats the numpy reference (``_post_cast_numpy`` and the numpy fan
 set-up in ``drape.py``) operation by operation, in the same precision (float32 where it
