@@ -145,9 +145,10 @@ def _values_ok_compiled(mask: np.ndarray, n_lat: np.ndarray, points: np.ndarray)
     kernels = sys.modules.get("sss2bathy.draping.kernels")
     if kernels is None or not all(a.flags.c_contiguous for a in (mask, n_lat, points)):
         return False
-    from sss2bathy.draping.drape import _use_numba
-
-    if not _use_numba():
+    # drape.BOOKKEEPING = "numpy" (the reference) turns the compiled pass off too; read from
+    # the loaded module, not imported (drape imports this module)
+    drape = sys.modules.get("sss2bathy.draping.drape")
+    if drape is not None and getattr(drape, "BOOKKEEPING", "numba") != "numba":
         return False
     return bool(
         kernels.draped_values_ok(
