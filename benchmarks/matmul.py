@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -101,6 +101,29 @@ def _strided_random(layout: tuple, device: torch.device, gen: torch.Generator) -
     return buf.as_strided(shape, stride)
 
 
+def _time_alone(
+    call: Callable[[], None], repeats: int, device: torch.device, min_time_s: float
+) -> list[float]:
+    """Seconds per ``call()`` in each of ``repeats`` loops long enough (``min_time_s``) that
+    the timer's resolution does not matter, after a warm-up call (allocator, kernels)."""
+    call()
+    synchronize(device)
+    t0 = time.perf_counter()
+    call()
+    synchronize(device)
+    once = max(time.perf_counter() - t0, 1e-7)
+    loops = max(1, min(1000, int(math.ceil(min_time_s / once))))
+    out = []
+    for _ in range(int(repeats)):
+        synchronize(device)
+        t0 = time.perf_counter()
+        for _ in range(loops):
+            call()
+        synchronize(device)
+        out.append((time.perf_counter() - t0) / loops)
+    return out
+
+
 def time_products(
     calls: Mapping[tuple, int],
     repeats: int,
@@ -124,20 +147,8 @@ def time_products(
         def call(op=op, args=args, kwargs=kwargs) -> None:
             op(*args, **kwargs)
 
-        call()  # warm-up (allocator, kernel selection)
-        synchronize(device)
-        t0 = time.perf_counter()
-        call()
-        synchronize(device)
-        once = max(time.perf_counter() - t0, 1e-7)
-        loops = max(1, min(1000, int(math.ceil(min_time_s / once))))
-        for r in range(int(repeats)):
-            synchronize(device)
-            t0 = time.perf_counter()
-            for _ in range(loops):
-                call()
-            synchronize(device)
-            totals[r] += count * (time.perf_counter() - t0) / loops
+        for r, t in enumerate(_time_alone(call, repeats, device, min_time_s)):
+            totals[r] += count * t
     return totals
 
 
@@ -167,20 +178,8 @@ def time_sines(
         def call(fn=fn, x=x, out=out) -> None:
             fn(x, out=out)
 
-        call()
-        synchronize(device)
-        t0 = time.perf_counter()
-        call()
-        synchronize(device)
-        once = max(time.perf_counter() - t0, 1e-7)
-        loops = max(1, min(1000, int(math.ceil(min_time_s / once))))
-        for r in range(int(repeats)):
-            synchronize(device)
-            t0 = time.perf_counter()
-            for _ in range(loops):
-                call()
-            synchronize(device)
-            totals[r] += count * (time.perf_counter() - t0) / loops
+        for r, t in enumerate(_time_alone(call, repeats, device, min_time_s)):
+            totals[r] += count * t
     return totals
 
 

@@ -185,8 +185,9 @@ def bench_siren_step(
     for p, run in runs.items():
         prefix = "" if p == names[0] else f"{p}: "
         times, bound, valid, rec = run["times"], run["bound"], run["valid"], run["rec"]
-        sine, mm_med = run["sine"], statistics.median(run["bound"])
-        sine_med = statistics.median(sine)
+        sine = run["sine"]
+        mm_med, sine_med = statistics.median(bound), statistics.median(sine)
+        ceiling = mm_med / (mm_med + sine_med)
         step_flops = rec.flops()
         mm_note = "the step's products alone at the torch.mm rate"
         if p != "fp32":
@@ -223,7 +224,7 @@ def bench_siren_step(
             figure(
                 prefix + "matmul bound / step time",
                 "%",
-                [100 * statistics.median(bound) / t for t in times],
+                [100 * mm_med / t for t in times],
                 "target >= 70 %" if p == "fp32" else f"of the {p} bound",
             ),
             figure(
@@ -241,7 +242,7 @@ def bench_siren_step(
             figure(
                 prefix + "ceiling: matmul / (matmul + sine bound)",
                 "%",
-                100 * mm_med / (mm_med + sine_med),
+                100 * ceiling,
                 "the matmul fraction of a step doing nothing but its products and sines",
             ),
         ]
@@ -270,11 +271,11 @@ def bench_siren_step(
             "recorded_flops": step_flops,
             "distinct_products": len(rec.calls),
             "products": sum(rec.calls.values()),
-            "bound_fraction": statistics.median(bound) / statistics.median(times),
+            "bound_fraction": mm_med / statistics.median(times),
             "sine_elements": rec.sine_elements(),
             "sine_calls": sum(rec.sines.values()),
             "sine_bound_s": sine_med,
-            "matmul_fraction_ceiling": mm_med / (mm_med + sine_med),
+            "matmul_fraction_ceiling": ceiling,
         }
     info.update(info["precisions"][names[0]])
     altitude = DEPTH_M - SONAR_DEPTH_M
