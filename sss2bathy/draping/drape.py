@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -134,22 +135,41 @@ def drape_line(line: SidescanLine, surface: Any, cfg: DrapeConfig | Any = None) 
     n_lat = np.full((P, 2, B), np.nan, np.float32)
     grazing = np.full((P, 2, B), np.nan, np.float32)
     mask = np.zeros((P, 2, B), np.uint8)
-    for start in range(0, P, cfg.pings_per_chunk):
-        sl = slice(start, min(P, start + cfg.pings_per_chunk))
-        _drape_chunk(
-            surf,
-            fan,
-            sl,
-            range_m,
-            bin_step,
-            bin_index,
-            line.sensor,
-            cfg,
-            (points[sl], n_lat[sl], grazing[sl], mask[sl]),
-        )
+    chunks = [
+        slice(start, min(P, start + cfg.pings_per_chunk))
+        for start in range(0, P, cfg.pings_per_chunk)
+    ]
+
+    def drape(sl: slice) -> None:
+        out = (points[sl], n_lat[sl], grazing[sl], mask[sl])
+        _drape_chunk(surf, fan, sl, range_m, bin_step, bin_index, line.sensor, cfg, out)
+
+    n_threads = min(_thread_count(surf, cfg), len(chunks))
+    if n_threads <= 1:
+        for sl in chunks:
+            drape(sl)
+    else:
+        surf.prepare_threads()
+        with ThreadPoolExecutor(n_threads, thread_name_prefix="drape") as pool:
+            # chunks write disjoint pings of the outputs; result() re-raises an error,
+            # after which the chunks not started yet are dropped
+            jobs = [pool.submit(drape, sl) for sl in chunks]
+            try:
+                for job in jobs:
+                    job.result()
+            except BaseException:
+                for job in jobs:
+                    job.cancel()
+                raise
     if log.isEnabledFor(logging.DEBUG):
         log.debug("draped line '%s': %s", line.name, mask_reason_counts(mask))
     return DrapedLine(points=points, n_lat=n_lat, grazing_rad=grazing, mask=mask)
+
+
+def _thread_count(surf: DrapeSurface, cfg: DrapeConfig) -> int:
+    """Threads draping a line's chunks: ``cfg.threads``, but one with the ``triangle``
+    engine (trimesh's intersector and its caches are not meant for concurrent calls)."""
+    return cfg.n_threads() if surf.engine == "embree" else 1
 
 
 def _reference_altitude(line: SidescanLine, surf: DrapeSurface) -> np.ndarray:

@@ -8,6 +8,7 @@ import logging
 import os
 import platform
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,24 @@ class _EmbreeScene:
             indices=np.asarray(mesh.faces, dtype=np.int32),
         )
         self._handle: int | None = None  # the RTCScene address, 0 = not available
+        self._handle_lock = threading.Lock()
+
+    def prepare(self) -> None:
+        """Build the BVH (embreex commits on its first query) and look up the direct
+        call's scene handle now, so that threads casting at once only read the scene
+        (embree: queries on a committed scene are thread-safe)."""
+        if self.scene.is_committed == 0:
+            self.scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
+        if DIRECT_EMBREE:
+            self._direct_handle()
+
+    def _direct_handle(self) -> int:
+        """The checked ``RTCScene`` address (0 = unusable), looked up once under a lock."""
+        if self._handle is None:
+            with self._handle_lock:
+                if self._handle is None:
+                    self._handle = _embree_scene_pointer(self)
+        return self._handle
 
     def origins(self, origins: np.ndarray) -> np.ndarray:
         """``(N, 3)`` float32 ray origins in the scene's frame from world ``(N, 3)``."""
@@ -81,16 +100,15 @@ class _EmbreeScene:
         ``rtcIntersect1`` loop; ``None`` where that is off or unavailable."""
         if not DIRECT_EMBREE:
             return None
-        if self._handle is None:
-            self._handle = _embree_scene_pointer(self)
-        if not self._handle:
+        handle = self._direct_handle()
+        if not handle:
             return None
         from sss2bathy.draping import kernels
 
         n = len(directions32)
         tri, dist = np.empty(n, np.int32), np.empty(n, np.float32)
         kernels.embree_first_hits(
-            self._handle,
+            handle,
             origins32,
             int(repeat),
             directions32,
@@ -272,6 +290,12 @@ class DrapeSurface:
         except Exception as exc:  # trimesh raises many error types for bad files
             raise ValueError(f"mesh_path: could not read {path} as a mesh ({exc})") from exc
         return cls.from_mesh(mesh, engine=engine)
+
+    def prepare_threads(self) -> None:
+        """Make the intersector ready for :meth:`cast` from several threads at once (the
+        embree scene committed, the direct call's handle found; casts then only read)."""
+        if isinstance(self.intersector, _EmbreeScene):
+            self.intersector.prepare()
 
     def cast(
         self,

@@ -66,6 +66,7 @@ def test_stale_file_and_config_change(tmp_path, make_plane, make_line, caplog):
     assert DrapedLine.load(path).meta["line"] == "l0"
     assert drape_key(survey, folder, {"rays_per_bin": 3.0}) != key
     assert drape_key(survey, folder, {"pings_per_chunk": 7}) == key
+    assert drape_key(survey, folder, {"threads": 3}) == key
 
 
 def test_mesh_path_surface(tmp_path, make_plane, make_line):

@@ -1,0 +1,108 @@
+"""Draping a line's chunks on several threads (``DrapeConfig.threads``): the same bits as
+one thread on every path (embree's direct call or embreex's own call, compiled or numpy
+bookkeeping, grid or mesh normals), errors from a chunk reach the caller, and the
+field's validation."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+import sss2bathy.draping.drape as drape_mod
+import sss2bathy.draping.surface as surface_mod
+from sss2bathy.draping import DrapeConfig, DrapeSurface, drape_line
+from sss2bathy.draping.config import AUTO_THREADS_MAX
+from tests.draping.test_drape_kernels import _holey_rough_grid, _line
+
+FIELDS = ("points", "n_lat", "grazing_rad", "mask")
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a).view(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def grid_surface() -> DrapeSurface:
+    return DrapeSurface.from_grid(_holey_rough_grid())
+
+
+@pytest.fixture(scope="module")
+def line():
+    return _line(n_pings=23)  # 8 chunks of 3 pings (the last one of 2)
+
+
+def _spy_threads(monkeypatch) -> set[str]:
+    """Record the names of the threads that drape chunks."""
+    names: set[str] = set()
+    chunk = drape_mod._drape_chunk
+
+    def spy(*args, **kwargs):
+        names.add(threading.current_thread().name)
+        return chunk(*args, **kwargs)
+
+    monkeypatch.setattr(drape_mod, "_drape_chunk", spy)
+    return names
+
+
+@pytest.mark.parametrize(
+    ("direct", "bookkeeping", "mesh"),
+    [
+        (True, "numba", False),
+        (False, "numba", False),
+        (True, "numpy", False),
+        (True, "numba", True),
+    ],
+)
+def test_threads_give_the_same_bits(monkeypatch, grid_surface, line, direct, bookkeeping, mesh):
+    surface = DrapeSurface.from_mesh(grid_surface.mesh) if mesh else grid_surface
+    monkeypatch.setattr(surface_mod, "DIRECT_EMBREE", direct)
+    monkeypatch.setattr(drape_mod, "BOOKKEEPING", bookkeeping)
+    ref = drape_line(line, surface, DrapeConfig(pings_per_chunk=3, threads=1))
+    names = _spy_threads(monkeypatch)
+    got = drape_line(line, surface, DrapeConfig(pings_per_chunk=3, threads=3))
+    if surface.engine == "embree":
+        assert len(names) > 1 and all(n.startswith("drape") for n in names), names
+    assert (ref.mask == 0).mean() > 0.3 and len(np.unique(ref.mask)) >= 4
+    assert np.isnan(ref.n_lat).any()
+    for name in FIELDS:
+        a, b = getattr(got, name), getattr(ref, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        np.testing.assert_array_equal(_bits(a), _bits(b), name)
+        np.testing.assert_array_equal(a, b, name)  # NaN positions included
+
+
+def test_one_thread_and_single_chunk_use_no_pool(monkeypatch, grid_surface, line):
+    names = _spy_threads(monkeypatch)
+    drape_line(line, grid_surface, DrapeConfig(pings_per_chunk=3, threads=1))
+    drape_line(line, grid_surface, DrapeConfig(pings_per_chunk=64, threads=4))
+    assert names == {threading.current_thread().name}
+
+
+def test_an_error_in_a_chunk_reaches_the_caller(monkeypatch, grid_surface, line):
+    chunk = drape_mod._drape_chunk
+
+    def failing(surf, fan, sl, *args):
+        if sl.start == 9:
+            raise RuntimeError("chunk 9 failed")
+        return chunk(surf, fan, sl, *args)
+
+    monkeypatch.setattr(drape_mod, "_drape_chunk", failing)
+    with pytest.raises(RuntimeError, match="chunk 9 failed"):
+        drape_line(line, grid_surface, DrapeConfig(pings_per_chunk=3, threads=2))
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, 2.0, True, "many", "", None])
+def test_threads_validation(bad):
+    with pytest.raises(ValueError, match=r"^drape\.threads: expected a positive integer or "):
+        DrapeConfig(threads=bad)
+    with pytest.raises(ValueError, match=r"found " + repr(bad).replace(".", r"\.")):
+        DrapeConfig.coerce({"threads": bad})
+
+
+def test_threads_count_and_cache_dict():
+    assert 1 <= DrapeConfig().n_threads() <= AUTO_THREADS_MAX
+    assert DrapeConfig(threads=7).n_threads() == 7
+    assert DrapeConfig(threads=1).cache_dict() == DrapeConfig(threads="auto").cache_dict()
+    assert "threads" not in DrapeConfig().cache_dict()
