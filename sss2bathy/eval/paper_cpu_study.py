@@ -1,6 +1,8 @@
 """Paper-scale CPU study (issue 20): how soon a SIREN fit reaches its map on this CPU.
 
-1. :func:`prepare_commands` prepares the ``synthetic_d1`` survey at a scale once, as two
+1. :func:`prepare_commands` prepares the ``synthetic_d1`` survey (``--survey``: another
+   synthetic preset, e.g. ``synthetic_d1_valsite``, the validation site on which the budget
+   schedule's settings are checked off the test lines) at a scale once, as two
    ``sss2bathy-prepare`` processes so the two costs are timed apart: the simulation
    (``drape=false``) and the draping on the MBES grid (a cache hit on the survey). A cached
    survey is reused (same config hash; :func:`survey_status` says beforehand, a dry compose).
@@ -22,6 +24,8 @@ loading the survey before the fit is not in it, but is in the run's process wall
 
     python -m sss2bathy.eval.paper_cpu_study --scale paper --budget-min 20
     python -m sss2bathy.eval.paper_cpu_study --scale paper --data-dir /tmp/base/data --dry-run
+    python -m sss2bathy.eval.paper_cpu_study --survey synthetic_d1_valsite --methods siren_gt_n2d \
+        --schedules budget --extra data.bin_fraction=1.0
     make paper-cpu-study [ARGS=...]
 """
 
@@ -277,6 +281,17 @@ def curve_figure(
 # ---------------------------------------------------------------- commands
 
 
+def check_preset(preset: str) -> str:
+    """``preset`` if ``conf/data/survey/<preset>.yaml`` is a synthetic survey preset (one the
+    simulator makes: ``synthetic_*``), else ``ValueError`` naming what exists."""
+    known = sorted(f.stem for f in (CONF / "data" / "survey").glob("synthetic_*.yaml"))
+    if preset not in known:
+        raise ValueError(
+            f"survey: expected a synthetic survey preset, one of {known}, found {preset!r}"
+        )
+    return preset
+
+
 def survey_status(scale: str, data_dir: str | Path, preset: str = PRESET) -> dict[str, Any]:
     """Whether ``data_dir`` already holds the survey (a dry compose: nothing is made).
 
@@ -338,6 +353,7 @@ def fit_command(
     seed: int = 42,
     extra: Sequence[str] = (),
     holdout_stop: int = 0,
+    preset: str = PRESET,
 ) -> list[str]:
     """The ``sss2bathy-train`` command of one run: at most ``budget_s`` seconds of fitting
     (``trainer.max_time``), a map evaluation ``evals_per_epoch`` times an epoch, no logger;
@@ -346,7 +362,8 @@ def fit_command(
     ``holdout_stop > 0``: stop once the held-out altimeter MAE (``val/holdout_alt_mae_m``, a
     signal without MBES; ``data.holdout``) has not improved for that many evaluations
     (Lightning's ``EarlyStopping``), and map the SIREN of its lowest value
-    (``model.select_best=holdout_alt_mae``). 0: off.
+    (``model.select_best=holdout_alt_mae``). 0: off. ``preset``: the survey
+    (``data/survey=<preset>``, a synthetic preset of ``conf/data/survey``).
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {sorted(METHODS)}, found {method!r}")
@@ -361,6 +378,7 @@ def fit_command(
         "-m",
         "sss2bathy.cli.train",
         f"experiment={method}",
+        f"data/survey={preset}",
         f"scale={scale}",
         f"siren_schedule={schedule}",
         f"seed={int(seed)}",
@@ -409,13 +427,18 @@ def _draped_ready(folder: Path) -> bool:
 
 
 def prepare_survey(
-    scale: str, data_dir: Path, out: Path, threads: int | None, sim_workers: int | None = None
+    scale: str,
+    data_dir: Path,
+    out: Path,
+    threads: int | None,
+    sim_workers: int | None = None,
+    preset: str = PRESET,
 ) -> dict[str, dict[str, Any]]:
     """Run :func:`prepare_commands`; per step its process wall, in-process time and note."""
-    status = survey_status(scale, data_dir)
+    status = survey_status(scale, data_dir, preset)
     folder = Path(status["folder"])
     draped_before = _draped_ready(folder)
-    cmds = prepare_commands(scale, data_dir, out, sim_workers=sim_workers)
+    cmds = prepare_commands(scale, data_dir, out, preset, sim_workers)
     result: dict[str, dict[str, Any]] = {}
     for step, cmd in cmds.items():
         log.info("prepare %s: %s", step, " ".join(cmd))
@@ -488,6 +511,7 @@ def run_study(
     sim_workers: int | None = None,
     references: Mapping[tuple[str, str], str | Path] | None = None,
     tabulate_only: bool = False,
+    preset: str = PRESET,
 ) -> list[dict[str, Any]]:
     """Prepare once, fit every method x schedule (one at a time), write the table/figure.
 
@@ -495,8 +519,9 @@ def run_study(
     elsewhere (e.g. a longer fit, ``parse_reference``): each is a row with its own budget
     (its last evaluation) and its best counts as the method's best. ``tabulate_only``:
     neither prepare nor fit; tabulate every run already in ``out/runs``, of any method
-    and schedule (and the references).
+    and schedule (and the references). ``preset``: the survey (:func:`check_preset`).
     """
+    check_preset(preset)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else ROOT / "data"
@@ -505,7 +530,7 @@ def run_study(
         prep_file = out / "prepare.json"
         prep = json.loads(prep_file.read_text()) if prep_file.is_file() else {}
     else:
-        prep = prepare_survey(scale, data_dir, out, threads, sim_workers)
+        prep = prepare_survey(scale, data_dir, out, threads, sim_workers, preset)
         atomic_write_text(out / "prepare.json", json.dumps(prep, indent=2) + "\n")
     curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     walls: dict[tuple[str, str], tuple[float, Path]] = {}
@@ -522,7 +547,7 @@ def run_study(
                 if not tabulate_only:
                     cmd = fit_command(
                         method, schedule, scale, data_dir, run_dir, budget_s,
-                        evals_per_epoch, threads, seed, extra, holdout_stop,
+                        evals_per_epoch, threads, seed, extra, holdout_stop, preset,
                     )  # fmt: skip
                     log.info("fit %s %s: %s", method, schedule, " ".join(cmd))
                     wall = run_logged(cmd, run_dir.with_suffix(".log"), threads)
@@ -551,7 +576,7 @@ def run_study(
         row["map_mae"] = _map_mae(run_dir)
     meta = {
         "scale": scale,
-        "survey": survey_status(scale, data_dir)["name"],
+        "survey": survey_status(scale, data_dir, preset)["name"],
         "budget_s": budget_s,
         "evals_per_epoch": evals_per_epoch,
         "threads": "torch default" if threads is None else threads,
@@ -575,6 +600,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale", default="paper", help="conf/scale/<scale>.yaml (tiny for tests)")
     p.add_argument("--budget-min", type=float, default=20.0, help="fitting minutes per run")
     p.add_argument("--data-dir", default=None, help="survey folders (default: <root>/data)")
+    p.add_argument(
+        "--survey",
+        default=PRESET,
+        help=f"synthetic survey preset, conf/data/survey/<name>.yaml (default {PRESET}; "
+        "synthetic_d1_valsite: the validation site, to choose settings off the test lines)",
+    )
     p.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
     p.add_argument(
         "--schedules", nargs="+", default=list(DEFAULT_SCHEDULES), choices=list(SCHEDULES)
@@ -621,12 +652,16 @@ def main(argv: list[str] | None = None) -> int:
         if key in references:
             p.error(f"--reference {text!r}: {key[0]}:{key[1]} is given twice")
         references[key] = run_dir
+    try:
+        check_preset(args.survey)
+    except ValueError as err:
+        p.error(str(err))
     data_dir = Path(args.data_dir) if args.data_dir else ROOT / "data"
     if args.dry_run:
-        status = survey_status(args.scale, data_dir)
+        status = survey_status(args.scale, data_dir, args.survey)
         print(json.dumps(status, indent=2))
         for cmd in prepare_commands(
-            args.scale, data_dir, args.out, sim_workers=args.sim_workers
+            args.scale, data_dir, args.out, args.survey, args.sim_workers
         ).values():
             print(" ".join(cmd[1:]))
         for method in args.methods:
@@ -635,7 +670,7 @@ def main(argv: list[str] | None = None) -> int:
                 cmd = fit_command(
                     method, schedule, args.scale, data_dir, run_dir, 60 * args.budget_min,
                     args.evals_per_epoch, args.threads, args.seed, args.extra,
-                    args.holdout_stop,
+                    args.holdout_stop, args.survey,
                 )  # fmt: skip
                 print(" ".join(cmd[1:]))
         return 0
@@ -644,7 +679,7 @@ def main(argv: list[str] | None = None) -> int:
         args.evals_per_epoch, args.threads, args.seed, args.marks_min, args.extra,
         command="python -m sss2bathy.eval.paper_cpu_study " + " ".join(argv or sys.argv[1:]),
         holdout_stop=args.holdout_stop, sim_workers=args.sim_workers,
-        references=references, tabulate_only=args.tabulate,
+        references=references, tabulate_only=args.tabulate, preset=args.survey,
     )  # fmt: skip
     print((Path(args.out) / "paper_cpu_study.md").read_text())
     return 0 if rows else 1

@@ -12,6 +12,7 @@ import pytest
 from sss2bathy.eval.paper_cpu_study import (
     DEFAULT_METHODS,
     DEFAULT_SCHEDULES,
+    check_preset,
     fit_command,
     mae_at,
     main,
@@ -188,6 +189,29 @@ def test_commands(tmp_path):
     assert "data.survey.workers=2" in prep2["simulation"]
     with pytest.raises(ValueError, match="sim_workers: expected an integer >= 1"):
         prepare_commands("tiny", tmp_path, tmp_path, sim_workers=0)
+
+
+def test_the_study_runs_on_another_synthetic_survey(tmp_path):
+    # the default is d1; the validation site is where settings may be chosen
+    assert "data/survey=synthetic_d1" in fit_command(
+        "siren_gt_n2d", "budget", "paper", tmp_path, tmp_path / "r", 60
+    )
+    cmd = fit_command(
+        "siren_gt_n2d", "budget", "paper", tmp_path, tmp_path / "r", 60,
+        preset="synthetic_d1_valsite",
+    )  # fmt: skip
+    assert "data/survey=synthetic_d1_valsite" in cmd
+    prep = prepare_commands("tiny", tmp_path, tmp_path, "synthetic_d1_valsite")
+    assert "data/survey=synthetic_d1_valsite" in prep["simulation"]
+    status = survey_status("tiny", tmp_path, "synthetic_d1_valsite")
+    assert status["name"] == "synthetic_d1_valsite_tiny"
+    assert check_preset("synthetic_d1_valsite") == "synthetic_d1_valsite"
+    with pytest.raises(
+        ValueError, match=r"survey: expected a synthetic survey preset, one of .*found 'xtf'"
+    ):
+        check_preset("xtf")
+    with pytest.raises(SystemExit):
+        main(["--survey", "nope", "--dry-run"])
 
 
 def test_survey_status_is_a_dry_compose(tmp_path):
