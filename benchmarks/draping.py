@@ -7,13 +7,20 @@ intersector (embreex's first-hit call on float32 rays already in the scene's fra
 bookkeeping; :func:`raw_cast`) — the limit draping could reach —, through draping's own
 cast (:func:`direct_cast`: embree's ``rtcIntersect1`` called from numba, faces and
 distances; about the cost of the bare ids-only call) and through trimesh's embree
-wrapper (:func:`trimesh_cast`, the previous baseline): rays/s of each and ratios.
+wrapper (:func:`trimesh_cast`, the previous baseline): rays/s of each and ratios. All of
+these on one thread; then draping on a thread pool (``DrapeConfig.threads``, the
+benchmark's thread count, by default ``torch.get_num_threads()``) against one-thread
+draping (its speed-up) and against the same rays split evenly over the same number of
+threads with the bare call and with draping's own cast (:func:`split_cast`), so that
+"% of bare embree" compares like with like at every thread count.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -78,9 +85,10 @@ class RecordingSurface(DrapeSurface):
 
 def record_rays(line: SidescanLine, surface: DrapeSurface, cfg: DrapeConfig) -> RayBatches:
     """Drape ``line`` once on a recording copy of ``surface`` (same mesh, grid and engine)
-    and return every ray batch ``(origins, directions, repeat)`` it cast."""
+    and return every ray batch ``(origins, directions, repeat)`` it cast, in draping's
+    one-thread order (``cfg.threads`` is set to 1 here)."""
     rec = RecordingSurface(surface.mesh, grid=surface.grid, engine=surface.engine)
-    drape_line(line, rec, cfg)
+    drape_line(line, rec, replace(cfg, threads=1))
     return rec.batches
 
 
@@ -135,6 +143,45 @@ def direct_cast(surface: DrapeSurface, batches: RayBatches) -> Callable[[], None
     return cast
 
 
+def split_cast(
+    surface: DrapeSurface, batches: RayBatches, threads: int, direct: bool = False
+) -> tuple[Callable[[], None], Callable[[], None]] | None:
+    """``(cast, close)``: the recorded rays cast on ``threads`` threads at once, split into
+    ``threads`` contiguous runs of equal length (the best balance draping's chunks could
+    have), with the bare first-hit call (embreex's ids-only call) or, with ``direct``,
+    draping's own cast (``rtcIntersect1`` from numba, faces and distances). Rays are
+    prepared and the pool started outside the timing; ``close`` stops the pool. ``None``
+    without embree, or without the direct call where ``direct`` asks for it. Both calls
+    run without the GIL and embree's queries on a committed scene are thread-safe."""
+    scene = surface.intersector
+    if surface.engine != "embree":
+        return None
+    surface.prepare_threads()
+    o32 = np.concatenate([np.repeat(scene.origins(o), r, axis=0) for o, _, r in batches])
+    d32 = np.concatenate([np.ascontiguousarray(d, np.float32) for _, d, _ in batches])
+    edges = np.linspace(0, len(d32), int(threads) + 1).astype(int)
+    parts = [(o32[a:b], d32[a:b]) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    if direct:
+        if scene.first_hits_direct(parts[0][0][:1], parts[0][1][:1], 1) is None:
+            return None
+
+        def one(part: tuple[np.ndarray, np.ndarray]) -> Any:
+            return scene.first_hits_direct(part[0], part[1], 1)
+
+    else:
+
+        def one(part: tuple[np.ndarray, np.ndarray]) -> Any:
+            return scene.run(part[0], part[1])
+
+    pool = ThreadPoolExecutor(int(threads), thread_name_prefix="bench-cast")
+
+    def cast() -> None:
+        for _ in pool.map(one, parts):
+            pass
+
+    return cast, pool.shutdown
+
+
 def trimesh_cast(surface: DrapeSurface, batches: RayBatches) -> Callable[[], None] | None:
     """The recorded rays through trimesh's embree wrapper (``intersects_first``, float64
     world inputs; it converts, normalises and scales per call); ``None`` without embree."""
@@ -162,21 +209,30 @@ def bench_drape(
     engine: str = "auto",
     warmup: int = 1,
     repeats: int = 3,
+    threads: int | None = None,
 ) -> dict:
     """Draping rays/s against casting the same rays with the bare intersector.
 
     "Raw" is embreex's first-hit call on the recorded rays, already float32 in the scene's
-    frame (no conversion, no bookkeeping), one thread like draping; trimesh's embree
-    wrapper (``intersects_first``, the previous baseline, which converts and normalises
-    per call) is reported too. Draping and the casts run interleaved; ratios are per repeat.
+    frame (no conversion, no bookkeeping), one thread like the one-thread draping;
+    trimesh's embree wrapper (``intersects_first``, the previous baseline, which converts
+    and normalises per call) is reported too. With ``threads`` > 1 (default
+    ``torch.get_num_threads()``) also draping with ``DrapeConfig(threads=threads)``, its
+    speed-up over one thread, and the same rays split over as many threads, bare and
+    through draping's own cast (:func:`split_cast`). All variants run interleaved (in
+    turns); ratios are per repeat.
     """
+    n_threads = int(threads) if threads is not None else torch.get_num_threads()
+    if n_threads < 1:
+        raise ValueError(f"threads: expected >= 1, found {threads!r}")
     grid = bench_terrain(size_m=size_m, cell=cell_m)
     line = bench_line(int(n_pings), int(n_bins))
     t0 = time.perf_counter()
     surface = DrapeSurface.from_grid(grid, engine=engine)
     surface.first_hits(line.position[:1], np.array([[0.0, 0.0, -1.0]]))  # builds the BVH
     t_build = time.perf_counter() - t0
-    cfg = DrapeConfig(engine=engine)
+    cfg = DrapeConfig(engine=engine, threads=1)
+    cfg_mt = DrapeConfig(engine=engine, threads=n_threads)
     batches = record_rays(line, surface, cfg)
     n_rays = count_rays(batches)
     fns: dict[str, Callable[[], Any]] = {
@@ -189,7 +245,19 @@ def bench_drape(
     wrapped = trimesh_cast(surface, batches)
     if wrapped is not None:
         fns["trimesh"] = wrapped
-    times, _ = time_in_turns(fns, dict.fromkeys(fns, repeats), warmup, torch.device("cpu"))
+    closers: list[Callable[[], None]] = []
+    if n_threads > 1:
+        fns["drape_mt"] = lambda: drape_line(line, surface, cfg_mt)
+        for key, use_direct in (("raw_mt", False), ("direct_mt", True)):
+            split = split_cast(surface, batches, n_threads, direct=use_direct)
+            if split is not None:
+                fns[key], close = split
+                closers.append(close)
+    try:
+        times, _ = time_in_turns(fns, dict.fromkeys(fns, repeats), warmup, torch.device("cpu"))
+    finally:
+        for close in closers:
+            close()
     t_drape, t_raw = times["drape"], times["raw"]
     figures = [
         figure("draping rays/s", "rays/s", rates(n_rays, t_drape)),
@@ -239,6 +307,8 @@ def bench_drape(
     figures.append(
         figure("draping time per 1000 pings", "s", [1000 * t / n_pings for t in t_drape])
     )
+    if "drape_mt" in times:
+        figures += _thread_figures(times, n_threads, n_rays, n_pings)
     return {
         "title": TITLE,
         "params": {
@@ -248,6 +318,7 @@ def bench_drape(
             "faces": int(len(surface.mesh.faces)),
             "rays": int(n_rays),
             "pings_per_chunk": int(cfg.pings_per_chunk),
+            "threads": n_threads,
         },
         "figures": figures,
         "info": {"surface_build_s": round(t_build, 3)},
@@ -255,6 +326,49 @@ def bench_drape(
             f"drape_line of a {n_pings}-ping line ({n_bins} bins per side) on the draping "
             f"benchmark's {size_m:g} m seabed ({len(surface.mesh.faces)} faces, "
             f"{surface.engine}), {n_rays / (2 * n_pings):.0f} rays per ping and head; "
-            "one thread; draping and bare casts interleaved."
+            f"one thread, and {n_threads} threads where > 1 (draping's chunks on a pool, "
+            "the bare casts' rays split evenly); every variant interleaved."
         ),
     }
+
+
+def _thread_figures(
+    times: dict[str, list[float]], n_threads: int, n_rays: int, n_pings: int
+) -> list[dict]:
+    """The figures of draping on ``n_threads`` threads (``times["drape_mt"]``): rays/s,
+    speed-up over one thread, and ratios to the bare and direct casts split over as many
+    threads."""
+    t_mt, t_one = times["drape_mt"], times["drape"]
+    tag = f"{n_threads} threads"
+    figures = [
+        figure(f"draping rays/s, {tag}", "rays/s", rates(n_rays, t_mt)),
+        figure(
+            f"draping speed-up, {tag} / 1 thread",
+            "x",
+            [a / b for a, b in zip(t_one, t_mt, strict=True)],
+            "DrapeConfig.threads; same bits as one thread",
+        ),
+        figure(f"draping time per 1000 pings, {tag}", "s", [1000 * t / n_pings for t in t_mt]),
+    ]
+    for key, label, note in (
+        ("raw_mt", "raw embree", "same rays split evenly, bare first-hit call on each thread"),
+        ("direct_mt", "direct embree", "same rays split evenly, draping's own cast"),
+    ):
+        if key not in times:
+            continue
+        t_cast = times[key]
+        figures += [
+            figure(f"{label} rays/s, {tag}", "rays/s", rates(n_rays, t_cast), note),
+            figure(
+                f"{label} speed-up, {tag} / 1 thread",
+                "x",
+                [a / b for a, b in zip(times[key.removesuffix("_mt")], t_cast, strict=True)],
+            ),
+            figure(
+                f"draping / {label}, {tag}",
+                "%",
+                [100 * c / d for c, d in zip(t_cast, t_mt, strict=True)],
+                "target >= 80 % (issue #20) at this thread count" if key == "raw_mt" else "",
+            ),
+        ]
+    return figures

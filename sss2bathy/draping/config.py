@@ -9,8 +9,8 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 ENGINES = ("auto", "embree", "triangle")
-# ``threads: auto``: the cores this process may run on, at most this many (2 threads
-# draw ~1.9x on the draping benchmark; more cores rarely pay for a line's few chunks)
+# ``threads: auto``: the cores this process may run on, at most this many (a line has
+# few chunks, ~32 at the default chunk size for 1000 pings, and other stages share cores)
 AUTO_THREADS_MAX = 4
 
 

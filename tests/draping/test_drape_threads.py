@@ -106,3 +106,27 @@ def test_threads_count_and_cache_dict():
     assert DrapeConfig(threads=7).n_threads() == 7
     assert DrapeConfig(threads=1).cache_dict() == DrapeConfig(threads="auto").cache_dict()
     assert "threads" not in DrapeConfig().cache_dict()
+
+
+def test_benchmark_split_casts_and_thread_figures(grid_surface):
+    from benchmarks.draping import bench_drape, count_rays, record_rays, split_cast
+
+    batches = record_rays(_line(n_pings=4), grid_surface, DrapeConfig(pings_per_chunk=2))
+    for direct in (False, True):
+        split = split_cast(grid_surface, batches, 3, direct=direct)
+        assert split is not None
+        cast, close = split
+        cast()
+        close()
+    assert count_rays(batches) > 0
+    doc = bench_drape(n_pings=12, n_bins=32, cell_m=4.0, warmup=0, repeats=1, threads=2)
+    names = {f["name"] for f in doc["figures"]}
+    assert doc["params"]["threads"] == 2
+    assert {
+        "draping speed-up, 2 threads / 1 thread",
+        "draping / raw embree, 2 threads",
+        "draping / direct embree, 2 threads",
+        "draping / raw throughput",
+    } <= names
+    one = bench_drape(n_pings=12, n_bins=32, cell_m=4.0, warmup=0, repeats=1, threads=1)
+    assert not any("threads" in f["name"] for f in one["figures"])
