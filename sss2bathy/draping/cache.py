@@ -190,6 +190,10 @@ def drape_survey(
         cfg: :class:`DrapeConfig`, a mapping of its fields, or ``None`` for defaults.
         lines: names of the lines to drape (default: all).
 
+    Lines are draped one after another, each on ``cfg.threads`` threads (its chunks of
+    pings at once, :func:`~sss2bathy.draping.drape.drape_line`); the thread count does
+    not change results and is not part of the cache key.
+
     Returns:
         ``{line name: DrapedLine}`` in the order of ``lines`` (or the survey's).
 

@@ -18,7 +18,13 @@ and normal kept). Where several crossings share a bin (layover), the in-beam one
 largest angular extent per metre of range (the strongest echo) wins.
 
 The only Python loop is over ping chunks, whose size (``pings_per_chunk``) trades speed
-against memory and does not change results. Per chunk the fans are built (float32 steps
+against memory and does not change results. The chunks run on a thread pool of
+``cfg.threads`` threads (``auto``: the usable cores, at most 4): each chunk reads the
+line, the fan and the surface and writes only its own pings of the outputs, the compiled
+kernels are ``nogil`` and embree's queries on the committed scene are thread-safe
+(:meth:`DrapeSurface.prepare_threads` commits it and finds the direct call's handle
+before the threads start; embreex's own call also runs without the GIL), so the result
+is the same bits for any thread count. Per chunk the fans are built (float32 steps
 in a numba kernel, numpy's ``arccos``, ``cos``, ``sin``, sort and matmul) and cast with
 embree: ``rtcIntersect1`` called from a compiled loop on embreex's own scene (faces and
 hit distances at the cost of embreex's ids-only call; embreex's full-output call where
@@ -120,7 +126,8 @@ def drape_line(line: SidescanLine, surface: Any, cfg: DrapeConfig | Any = None) 
 
     Returns:
         The :class:`DrapedLine` with ``(P, 2, B)`` arrays. The result does not depend on
-        ``cfg.pings_per_chunk``.
+        ``cfg.pings_per_chunk`` or ``cfg.threads`` (chunks of pings draped on that many
+        threads at once; one with the ``triangle`` engine).
     """
     if not isinstance(line, SidescanLine):
         raise ValueError(f"line: expected a SidescanLine, found {type(line).__name__}")
