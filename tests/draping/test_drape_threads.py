@@ -14,6 +14,7 @@ import sss2bathy.draping.drape as drape_mod
 import sss2bathy.draping.surface as surface_mod
 from sss2bathy.draping import DrapeConfig, DrapeSurface, drape_line
 from sss2bathy.draping.config import AUTO_THREADS_MAX
+from sss2bathy.draping.drape import _chunks
 from tests.draping.test_drape_kernels import _holey_rough_grid, _line
 
 FIELDS = ("points", "n_lat", "grazing_rad", "mask")
@@ -30,7 +31,7 @@ def grid_surface() -> DrapeSurface:
 
 @pytest.fixture(scope="module")
 def line():
-    return _line(n_pings=23)  # 8 chunks of 3 pings (the last one of 2)
+    return _line(n_pings=23)  # 8 chunks of 2-3 pings at 3 per chunk (9 on 3 threads)
 
 
 def _spy_threads(monkeypatch) -> set[str]:
@@ -73,6 +74,27 @@ def test_threads_give_the_same_bits(monkeypatch, grid_surface, line, direct, boo
         np.testing.assert_array_equal(a, b, name)  # NaN positions included
 
 
+@pytest.mark.parametrize(
+    ("n_pings", "per_chunk", "threads", "sizes"),
+    [
+        (1000, 32, 1, {31: 24, 32: 8}),
+        (1000, 32, 2, {31: 24, 32: 8}),
+        (100, 32, 2, {25: 4}),
+        (100, 32, 3, {16: 2, 17: 4}),
+        (23, 3, 3, {2: 4, 3: 5}),
+        (5, 32, 4, {5: 1}),
+        (3, 1, 4, {1: 3}),
+        (0, 32, 2, {}),
+    ],
+)
+def test_chunks_cover_the_line_in_equal_shares(n_pings, per_chunk, threads, sizes):
+    chunks = _chunks(n_pings, per_chunk, threads)
+    assert [c.start for c in chunks[1:]] == [c.stop for c in chunks[:-1]]
+    assert (chunks[0].start, chunks[-1].stop) == (0, n_pings) if chunks else n_pings == 0
+    got = [c.stop - c.start for c in chunks]
+    assert {s: got.count(s) for s in set(got)} == sizes
+
+
 def test_one_thread_and_single_chunk_use_no_pool(monkeypatch, grid_surface, line):
     names = _spy_threads(monkeypatch)
     drape_line(line, grid_surface, DrapeConfig(pings_per_chunk=3, threads=1))
@@ -84,12 +106,12 @@ def test_an_error_in_a_chunk_reaches_the_caller(monkeypatch, grid_surface, line)
     chunk = drape_mod._drape_chunk
 
     def failing(surf, fan, sl, *args):
-        if sl.start == 9:
-            raise RuntimeError("chunk 9 failed")
+        if sl.start <= 9 < sl.stop:
+            raise RuntimeError("ping 9 failed")
         return chunk(surf, fan, sl, *args)
 
     monkeypatch.setattr(drape_mod, "_drape_chunk", failing)
-    with pytest.raises(RuntimeError, match="chunk 9 failed"):
+    with pytest.raises(RuntimeError, match="ping 9 failed"):
         drape_line(line, grid_surface, DrapeConfig(pings_per_chunk=3, threads=2))
 
 
