@@ -53,10 +53,10 @@ class DrapeConfig:
         pings_per_chunk: at most this many pings draped per vectorised step and
             ray-casting call (a line is split into equal chunks, their number a multiple
             of the thread count; speed and memory only, results do not depend on it).
-            Larger chunks amortise the
-            per-chunk Python and dispatch work; on the draping benchmark (512 bins,
-            ~1500 rays per fan, ~40 bytes of temporaries per ray) 4 pings take ~7 %
-            longer than 32, 8-16 ~3 % longer, 64-128 the same within noise.
+            Larger chunks amortise the per-chunk Python and dispatch work; on the
+            draping benchmark (512 bins, ~1500 rays per fan, ~40 bytes of temporaries
+            per ray) 4 pings take ~7 % longer than 32, 8-16 ~3 % longer, 64-128 the
+            same within noise.
         threads: threads draping a line's chunks of pings at once (an integer >= 1, or
             ``auto``: the cores this process may run on, at most
             :data:`AUTO_THREADS_MAX`). Speed only: the chunks write disjoint pings and

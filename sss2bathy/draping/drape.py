@@ -24,7 +24,9 @@ line, the fan and the surface and writes only its own pings of the outputs, the 
 kernels are ``nogil`` and embree's queries on the committed scene are thread-safe
 (:meth:`DrapeSurface.prepare_threads` commits it and finds the direct call's handle
 before the threads start; embreex's own call also runs without the GIL), so the result
-is the same bits for any thread count. Per chunk the fans are built (float32 steps
+is the same bits for any thread count. ~93 % of a chunk's time is in GIL-free kernels; on
+two cores two threads drape the benchmark line 1.8x faster than one (the same rays split
+over two threads with the bare call: 1.86x). Per chunk the fans are built (float32 steps
 in a numba kernel, numpy's ``arccos``, ``cos``, ``sin``, sort and matmul) and cast with
 embree: ``rtcIntersect1`` called from a compiled loop on embreex's own scene (faces and
 hit distances at the cost of embreex's ids-only call; embreex's full-output call where
