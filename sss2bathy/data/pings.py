@@ -24,7 +24,7 @@ Batch keys (``P`` pings, ``B`` bins per side, ``A`` altimeter points):
 step then costs less (a quarter of the bins: about half a whole-ping step at the paper's
 scale, the step having a part that does not scale with the bins). Neighbouring bins of a
 ping sample nearly the same seabed (512 bins over 50 m at the paper's scale), so the map
-gains nearly as much per step (README → Performance, "A map within 10 % of the best in
+gains nearly as much per step (docs/performance_log.md, "A map within 10 % of the best in
 20 min"; ``siren_schedule=budget`` uses a quarter).
 
 Normals and masks (``normals``):
