@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -59,7 +60,8 @@ class DrapeConfig:
             same within noise.
         threads: threads draping a line's chunks of pings at once (an integer >= 1, or
             ``auto``: the cores this process may run on, at most
-            :data:`AUTO_THREADS_MAX`). Speed only: the chunks write disjoint pings and
+            :data:`AUTO_THREADS_MAX` and at most torch's thread count, e.g. the entry
+            points' ``torch_threads``). Speed only: the chunks write disjoint pings and
             the results are the same bits for any count (not in the cache key). The
             compiled bookkeeping and embree's direct call run without the GIL; the
             slow ``triangle`` engine drapes with one thread.
@@ -137,7 +139,13 @@ class DrapeConfig:
 
     def n_threads(self) -> int:
         """``threads`` as a count: ``auto`` -> :func:`available_cores`, at most
-        :data:`AUTO_THREADS_MAX`."""
+        :data:`AUTO_THREADS_MAX` and at most torch's thread count where torch is loaded (an
+        entry point run with ``torch_threads=1``, to share a CPU with other jobs, drapes on
+        one thread too)."""
         if self.threads == "auto":
-            return min(available_cores(), AUTO_THREADS_MAX)
+            n = min(available_cores(), AUTO_THREADS_MAX)
+            torch = sys.modules.get("torch")  # not imported here: draping does not need it
+            if torch is not None:
+                n = min(n, max(1, int(torch.get_num_threads())))
+            return n
         return int(self.threads)

@@ -125,6 +125,16 @@ def test_threads_validation(bad):
 
 def test_threads_count_and_cache_dict():
     assert 1 <= DrapeConfig().n_threads() <= AUTO_THREADS_MAX
+    # auto follows torch's thread count (torch_threads=1 when jobs share a CPU)
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert DrapeConfig().n_threads() == 1
+        assert DrapeConfig(threads=3).n_threads() == 3  # an explicit count is kept
+    finally:
+        torch.set_num_threads(before)
     assert DrapeConfig(threads=7).n_threads() == 7
     assert DrapeConfig(threads=1).cache_dict() == DrapeConfig(threads="auto").cache_dict()
     assert "threads" not in DrapeConfig().cache_dict()
