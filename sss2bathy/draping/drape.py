@@ -19,29 +19,29 @@ largest angular extent per metre of range (the strongest echo) wins.
 
 The only Python loop is over ping chunks, whose size (``pings_per_chunk``) trades speed
 against memory and does not change results. The chunks run on a thread pool of
-``cfg.threads`` threads (``auto``: the usable cores, at most 4): each chunk reads the
-line, the fan and the surface and writes only its own pings of the outputs, the compiled
-kernels are ``nogil`` and embree's queries on the committed scene are thread-safe
-(:meth:`DrapeSurface.prepare_threads` commits it and finds the direct call's handle
-before the threads start; embreex's own call also runs without the GIL), so the result
-is the same bits for any thread count. ~93 % of a chunk's time is in GIL-free kernels; on
-two cores two threads drape the benchmark line 1.8x faster than one (the same rays split
-over two threads with the bare call: 1.86x). Per chunk the fans are built (float32 steps
-in a numba kernel, numpy's ``arccos``, ``cos``, ``sin``, sort and matmul) and cast with
-embree: ``rtcIntersect1`` called from a compiled loop on embreex's own scene (faces and
-hit distances at the cost of embreex's ids-only call; embreex's full-output call where
-that scene handle cannot be found, :data:`sss2bathy.draping.surface.DIRECT_EMBREE`). The
-bookkeeping after the cast (brackets, occlusion checks, exact roots, layover, normals,
-grazing angles, masks) runs in compiled numba kernels (:mod:`sss2bathy.draping.kernels`,
-``BOOKKEEPING = "numba"``, one loop over fans, pairs and bins) that give the same bits as
-the vectorised numpy version kept as their reference (``BOOKKEEPING = "numpy"``, also
-the fallback without numba). On the draping benchmark (one core, 1000 pings) embree
-takes ~79 % of draping's time (~0.72 s); of the rest about 55 % is
-:func:`~sss2bathy.draping.kernels.drape_fans` (~0.11 s: root finding per bin, then per
-matched bin the gradient, ``hypot`` and ``acos``) and the remainder numpy's fan set-up
-(``cos``/``sin``, sort, ``arccos``, the direction matmul; ~0.04 s), the occlusion checks
-(~0.01 s) and :meth:`DrapedLine.validate` (a compiled pass, ~3 ms).
-"""
+``cfg.threads`` threads (``auto``: the usable cores, at most 4 and at most torch's
+thread count): each chunk reads the line, the fan and the surface and writes only its
+own pings of the outputs, the compiled kernels are ``nogil`` and embree's queries on the
+committed scene are thread-safe (:meth:`DrapeSurface.prepare_threads` commits it and
+finds the direct call's handle before the threads start; embreex's own call also runs
+without the GIL), so the result is the same bits for any thread count. ~93 % of a
+chunk's time is in GIL-free kernels; on two cores two threads drape the benchmark line
+1.8x faster than one (the same rays split over two threads with the bare call: 1.86x).
+Per chunk the fans are built (float32 steps in a numba kernel, numpy's ``arccos``,
+``cos``, ``sin``, sort and matmul) and cast with embree: ``rtcIntersect1`` called from a
+compiled loop on embreex's own scene (faces and hit distances at the cost of embreex's
+ids-only call; embreex's full-output call where that scene handle cannot be found,
+:data:`sss2bathy.draping.surface.DIRECT_EMBREE`). The bookkeeping after the cast
+(brackets, occlusion checks, exact roots, layover, normals, grazing angles, masks) runs
+in compiled numba kernels (:mod:`sss2bathy.draping.kernels`, ``BOOKKEEPING = "numba"``,
+one loop over fans, pairs and bins) that give the same bits as the vectorised numpy
+version kept as their reference (``BOOKKEEPING = "numpy"``, also the fallback without
+numba). On the draping benchmark (one core, 1000 pings) embree takes ~79 % of draping's
+time (~0.72 s); of the rest about 55 % is :func:`~sss2bathy.draping.kernels.drape_fans`
+(~0.11 s: root finding per bin, then per matched bin the gradient, ``hypot`` and
+``acos``) and the remainder numpy's fan set-up (``cos``/``sin``, sort, ``arccos``, the
+direction matmul; ~0.04 s), the occlusion checks (~0.01 s) and
+:meth:`DrapedLine.validate` (a compiled pass, ~3 ms)."""
 
 from __future__ import annotations
 

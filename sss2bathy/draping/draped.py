@@ -145,10 +145,10 @@ def _values_ok_compiled(mask: np.ndarray, n_lat: np.ndarray, points: np.ndarray)
     kernels = sys.modules.get("sss2bathy.draping.kernels")
     if kernels is None or not all(a.flags.c_contiguous for a in (mask, n_lat, points)):
         return False
-    # drape.BOOKKEEPING = "numpy" (the reference) turns the compiled pass off too; read from
-    # the loaded module, not imported (drape imports this module)
+    # drape.BOOKKEEPING = "numpy" (the reference) turns the compiled pass off too; drape's
+    # own switch, from the loaded module (drape imports this module, not the reverse)
     drape = sys.modules.get("sss2bathy.draping.drape")
-    if drape is not None and getattr(drape, "BOOKKEEPING", "numba") != "numba":
+    if drape is not None and not drape._use_numba():
         return False
     return bool(
         kernels.draped_values_ok(
