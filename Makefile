@@ -30,8 +30,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
 
-test: install ## Run the default (fast) test tier
-	$(BIN)/python -m pytest -q
+# The default tier on every core (at most 4 workers; each test file stays on one worker, so a
+# file's fixtures are built once): 278 s against 531 s serial on 2 cores (session 14).
+# PYTEST_WORKERS=0 runs it serially, in one process.
+PYTEST_WORKERS ?= auto
+test: install ## Run the default (fast) test tier, on every core (PYTEST_WORKERS=0: serially)
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --maxprocesses=4 --dist loadfile
 
 test-slow: install ## Run the slow tier (end-to-end runs, sweeps, DDP)
 	$(BIN)/python -m pytest -q -m slow
