@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
 
 # The default tier on every core (at most 4 workers; each test file stays on one worker, so a
-# file's fixtures are built once): 278 s against 531 s serial on 2 cores (session 14).
+# file's fixtures are built once): 278 / 339 s (two runs) against 531 s serial on 2 cores (session 14).
 # PYTEST_WORKERS=0 runs it serially, in one process.
 PYTEST_WORKERS ?= auto
 test: install ## Run the default (fast) test tier, on every core (PYTEST_WORKERS=0: serially)
