@@ -178,6 +178,59 @@ class BoulderParams:
     ridge_affinity: float = 2.0
 
 
+@dataclass(frozen=True)
+class ObjectParams:
+    """A wreck-like object on the seabed (``data.survey.terrain.objects[i]``).
+
+    ``kind``: ``box`` (a rectangular block with a flat top) or ``hull`` (a ship's hull lying
+    upright: a super-elliptic cross-section with near-vertical sides and a flat deck, the
+    beam narrowing to a point over the bow's ``bow_fraction`` of the length). The footprint
+    (``length_m`` along ``heading_rad``, clockwise from North, by ``beam_m``) is centred at
+    ``(x_m, y_m)`` in the local frame; the top is ``height_m`` above the lowest seabed under
+    the footprint, so the object stands that high above its surroundings. Its cells take
+    ``material`` (None: the boulder material).
+    """
+
+    kind: str
+    x_m: float
+    y_m: float
+    length_m: float
+    beam_m: float
+    height_m: float
+    heading_rad: float = 0.0
+    bow_fraction: float = 0.3
+    material: str | None = None
+
+
+OBJECT_KINDS = ("box", "hull")
+
+
+def _read_objects(r: _Reader) -> tuple[ObjectParams, ...]:
+    path, value = r._get("objects", None)
+    if value is None:
+        return ()
+    if not isinstance(value, Sequence) or isinstance(value, str | Mapping):
+        raise config_error(path, "a list of objects ({kind, x_m, y_m, length_m, ...})", value)
+    out = []
+    for i, spec in enumerate(value):
+        o = _Reader(spec, f"{path}[{i}]")
+        kind = o.choice("kind", "hull", OBJECT_KINDS)
+        obj = ObjectParams(
+            kind=kind,
+            x_m=o.number("x_m", 0.0),
+            y_m=o.number("y_m", 0.0),
+            length_m=o.number("length_m", 10.0, gt=0.0),
+            beam_m=o.number("beam_m", 4.0, gt=0.0),
+            height_m=o.number("height_m", 2.0, gt=0.0),
+            heading_rad=math.radians(o.number("heading_deg", 0.0)),
+            bow_fraction=o.number("bow_fraction", 0.3, ge=0.0, lt=1.0),
+            material=o.text("material", None),
+        )
+        o.done()
+        out.append(obj)
+    return tuple(out)
+
+
 GRID_SUFFIXES = (".tif", ".tiff", ".gtiff", ".asc", ".bag", ".xyz", ".txt", ".csv", ".pts")
 
 
@@ -284,7 +337,9 @@ class TerrainParams:
     The terrain covers ``[0, size_m[0]] x [0, size_m[1]]`` (x East, y North) in the local
     frame; heights are negative (z = -depth). With ``grid`` (a real bathymetry grid) the
     grid is the terrain: size, cell, depth and regional slope come from it, and the relief
-    and boulder parameters describe the optional sub-cell detail only.
+    and boulder parameters describe the optional sub-cell detail only. ``objects``
+    (wreck-like boxes and hulls, :class:`ObjectParams`) stand on either; none: the terrain
+    is exactly what it was before objects existed.
     """
 
     size_m: tuple[float, float] = (350.0, 300.0)
@@ -299,6 +354,7 @@ class TerrainParams:
     texture_cell_m: float = 0.25
     mbes_noise_m: float = 0.02
     grid: GridTerrainParams | None = None
+    objects: tuple[ObjectParams, ...] = ()
 
 
 #: procedural-only terrain keys: refused next to ``grid`` (the grid gives them)
@@ -376,6 +432,7 @@ def _read_terrain(r: _Reader) -> TerrainParams:
         texture_cell_m=r.number("texture_cell_m", 0.25, gt=0.0),
         mbes_noise_m=r.number("mbes_noise_m", 0.02, ge=0.0),
         grid=grid,
+        objects=_read_objects(r),
     )
     if grid is not None:  # 0 = given by the grid
         params = replace(
@@ -798,6 +855,13 @@ class SyntheticSurveyConfig:
                 )
             origin = {}
         materials = _read_materials(r.section("materials"))
+        for i, obj in enumerate(terrain.objects):
+            if obj.material is not None and obj.material not in materials.names:
+                raise config_error(
+                    f"{ROOT}.terrain.objects[{i}].material",
+                    f"one of {list(materials.names)}",
+                    obj.material,
+                )
         plan = _read_plan(r.section("plan"))
         sonar = _read_sonar(r.section("sonar"))
         workers = r.integer("workers", 1, ge=1)
@@ -844,6 +908,7 @@ _NEUTRAL_KEYS = (
     ("terrain", "grid", None),
     ("plan", "heading_rad", None),
     ("plan", "min_line_m", 20.0),
+    ("terrain", "objects", []),
 )
 
 

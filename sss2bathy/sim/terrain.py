@@ -6,7 +6,9 @@ Boulder flanks and ridge slopes give the long tail of the head-plane normal ``n_
 the relief keeps most of it small. The material map thresholds a smooth random field
 (coupled to the relief, so mud collects in hollows) by the configured class fractions;
 boulders and ridges are rock. Texture is a sub-MBES-resolution reflectivity multiplier
-(log-normal noise at a per-material scale, plus sand ripples).
+(log-normal noise at a per-material scale, plus sand ripples). Optional wreck-like objects
+(boxes, ship hulls: ``terrain.objects``) stand on the finished seabed with near-vertical
+sides, so the ray-traced sidescan gives them bright faces and real shadows.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
-from sss2bathy.sim.config import GridTerrainParams, MaterialParams, TerrainParams
+from sss2bathy.sim.config import GridTerrainParams, MaterialParams, ObjectParams, TerrainParams
 from sss2bathy.survey import BathyGrid
 
 
@@ -216,6 +218,8 @@ def generate_terrain(
     mat = _material_map(materials, rng, relief, cell)
     rock = materials.index(materials.boulder_material)
     mat[(boulder_layer > 0.05) | (ridges > 0.3)] = rock
+    if params.objects:  # no random draws: the other layers are those without objects
+        heights = place_objects(heights, cell, params.objects, mat, materials)
     texture, tcell = _texture(params, materials, rng, mat, cell, width, height)
     return Terrain(heights, cell, mat.astype(np.uint8), names, texture, tcell, boulders)
 
@@ -263,6 +267,94 @@ def _ridges(
         ridge = profile.max(axis=1).reshape(cx.shape)
         block = out[iy0 : iy1 + 1, ix0 : ix1 + 1]
         np.maximum(block, ridge, out=block)
+    return out
+
+
+# ---------------------------------------------------------------------- objects
+def object_frame(obj: ObjectParams, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, v)`` (m) of points in an object's frame: ``u`` along its heading (bow
+    positive), ``v`` across it (positive to port), from its centre."""
+    dx = np.asarray(x, dtype=np.float64) - obj.x_m
+    dy = np.asarray(y, dtype=np.float64) - obj.y_m
+    s, c = math.sin(obj.heading_rad), math.cos(obj.heading_rad)
+    return dx * s + dy * c, -dx * c + dy * s
+
+
+def object_profile(obj: ObjectParams, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Height (m) of ``obj`` above its base at points ``(x, y)``; 0 outside its footprint.
+
+    ``box``: ``height_m`` over the ``length_m x beam_m`` rectangle. ``hull``: a
+    super-elliptic cross-section ``h (1 - |v / b(u)|^4)^(1/4)`` (near-vertical sides, a
+    flat deck) whose half-beam ``b(u)`` narrows elliptically to a point over the bow's
+    ``bow_fraction`` of the length.
+    """
+    u, v = object_frame(obj, x, y)
+    half_l, half_b = obj.length_m / 2, obj.beam_m / 2
+    along = np.abs(u) <= half_l
+    if obj.kind == "box":
+        return np.where(along & (np.abs(v) <= half_b), obj.height_m, 0.0)
+    if obj.kind != "hull":
+        raise ValueError(f"obj.kind: expected one of ['box', 'hull'], found {obj.kind!r}")
+    bow = obj.bow_fraction * obj.length_m
+    t = np.clip((u - (half_l - bow)) / bow, 0.0, 1.0) if bow > 0 else np.zeros_like(u)
+    b = half_b * np.sqrt(np.clip(1.0 - t * t, 0.0, None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.where(b > 0, np.abs(v) / b, np.inf)
+    inside = along & (q < 1.0)
+    section = np.power(np.clip(1.0 - q**4, 0.0, None), 0.25, where=inside, out=np.zeros_like(u))
+    return obj.height_m * section
+
+
+def object_cells(
+    obj: ObjectParams, shape: tuple[int, int], cell: float, sub: int = 3
+) -> tuple[slice, slice, np.ndarray]:
+    """The cell-averaged profile of ``obj`` (``sub`` x ``sub`` samples per cell) on the
+    bounding box of its footprint in a grid of ``shape`` whose cell ``[0, 0]`` is centred at
+    the origin: ``(rows, cols, profile)``; empty slices when it lies off the grid."""
+    ny, nx = shape
+    reach = math.hypot(obj.length_m, obj.beam_m) / 2 + cell
+    ix0 = max(int(math.floor((obj.x_m - reach) / cell)), 0)
+    ix1 = min(int(math.ceil((obj.x_m + reach) / cell)), nx - 1)
+    iy0 = max(int(math.floor((obj.y_m - reach) / cell)), 0)
+    iy1 = min(int(math.ceil((obj.y_m + reach) / cell)), ny - 1)
+    if ix1 < ix0 or iy1 < iy0:
+        return slice(0, 0), slice(0, 0), np.zeros((0, 0))
+    offs = ((np.arange(sub) + 0.5) / sub - 0.5) * cell
+    gx = (np.arange(ix0, ix1 + 1)[:, None] * cell + offs[None]).ravel()
+    gy = (np.arange(iy0, iy1 + 1)[:, None] * cell + offs[None]).ravel()
+    sx, sy = np.meshgrid(gx, gy)
+    prof = object_profile(obj, sx, sy)
+    prof = prof.reshape(iy1 - iy0 + 1, sub, ix1 - ix0 + 1, sub).mean(axis=(1, 3))
+    return slice(iy0, iy1 + 1), slice(ix0, ix1 + 1), prof
+
+
+def place_objects(
+    heights: np.ndarray,
+    cell: float,
+    objects: tuple[ObjectParams, ...],
+    mat: np.ndarray | None = None,
+    materials: MaterialParams | None = None,
+) -> np.ndarray:
+    """``heights`` with ``objects`` standing on them (a new array).
+
+    Each object's top is its ``height_m`` above the lowest seabed under its footprint; a
+    cell takes the higher of the seabed and the object. Cells where the object rises more
+    than 5 cm set ``mat`` (in place) to the object's material (None: the boulder
+    material of ``materials``).
+    """
+    out = np.array(heights, dtype=np.float64)
+    for obj in objects:
+        rows, cols, prof = object_cells(obj, out.shape, cell)
+        covered = prof > 0
+        if not covered.any():
+            continue
+        block = out[rows, cols]
+        base = float(block[covered].min())
+        raised = np.where(covered, base + prof, -np.inf)
+        out[rows, cols] = np.maximum(block, raised)
+        if mat is not None and materials is not None:
+            name = obj.material or materials.boulder_material
+            mat[rows, cols][prof > 0.05] = materials.index(name)
     return out
 
 
@@ -605,6 +697,8 @@ def grid_terrain(
     if gp.materials_raster is not None:
         mat = _raster_materials(gp, materials, source.origin, mat, cell)
     mat[layer > 0.05] = materials.index(materials.boulder_material)
+    if params.objects:
+        render = place_objects(render, cell, params.objects, mat, materials)
     ny, nx = render.shape
     texture, tcell = _texture(params, materials, rng, mat, cell, (nx - 1) * cell, (ny - 1) * cell)
     terrain = Terrain(
