@@ -26,6 +26,7 @@ from sss2bathy.geometry.normals import (
     vehicle_normal,
     world_normal,
 )
+from sss2bathy.geometry.seabed import flat_seabed_depression
 
 __all__ = [
     "SIDE_PORT",
@@ -46,4 +47,5 @@ __all__ = [
     "incidence_cosine",
     "vehicle_normal",
     "world_normal",
+    "flat_seabed_depression",
 ]
