@@ -11,15 +11,19 @@ the traceback instead. Hydra entry points use :func:`hydra_entry` in place of
 from __future__ import annotations
 
 import difflib
+import errno
 import functools
 import json
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
+import textwrap
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +74,13 @@ def setup_environment() -> None:
 TRACE_FLAG = "--trace"
 TRACE_ENV = "SSS2BATHY_TRACE"
 USER_ERROR_EXIT = 2
+HELP_FLAGS = ("-h", "--help")
+HYDRA_HELP_FLAG = "--hydra-help"
+
+#: how a failed start's run folder may look and still be removed: Hydra's own records, the
+#: job's log and the config dump (:func:`log_config`), nothing the run made
+_START_FILES = ("config.yaml",)
+_START_SUFFIXES = (".log",)
 
 
 def show_traceback() -> bool:
@@ -78,11 +89,38 @@ def show_traceback() -> bool:
 
 
 def user_error_types() -> tuple[type[BaseException], ...]:
-    """Exceptions that are the user's input, not a bug: reported in one line."""
+    """Exceptions that are the user's input, not a bug: reported in one line.
+
+    ``OSError`` covers a missing file, a folder without write permission, a read-only file
+    system and a full disk (:func:`os_error_message`); other ``OSError`` s name their file."""
     from sss2bathy.config_validation import ConfigError
     from sss2bathy.survey import SurveyFormatError
 
-    return (SurveyFormatError, ConfigError, ValueError, FileNotFoundError)
+    return (SurveyFormatError, ConfigError, ValueError, OSError)
+
+
+#: ``OSError`` numbers that are the user's environment (a path, its permissions, its disk)
+USER_OS_ERRNOS = frozenset(
+    {
+        errno.ENOENT,
+        errno.ENOTDIR,
+        errno.EISDIR,
+        errno.EACCES,
+        errno.EPERM,
+        errno.EROFS,
+        errno.ENOSPC,
+        errno.EDQUOT,
+        errno.ENAMETOOLONG,
+    }
+)
+
+
+def is_user_error(err: BaseException) -> bool:
+    """A user error of :func:`user_error_types`; of the ``OSError`` s only a missing file
+    and those of :data:`USER_OS_ERRNOS` (other I/O failures keep their traceback)."""
+    if not isinstance(err, OSError) or isinstance(err, FileNotFoundError | PermissionError):
+        return True
+    return err.errno in USER_OS_ERRNOS
 
 
 def one_line(message: str) -> str:
@@ -90,24 +128,118 @@ def one_line(message: str) -> str:
     return re.sub(r"\s+", " ", str(message)).strip()
 
 
-def report_user_error(message: str) -> None:
-    """Print ``error: <message>`` as one line on stderr and exit with status 2."""
-    print(f"error: {one_line(message)}", file=sys.stderr, flush=True)
+def rename_keys(message: str, aliases: Mapping[str, str] | None) -> str:
+    """``message`` with each config key prefix of ``aliases`` (``{"data.survey.":
+    "survey."}``) spelled as the entry point spells it; only whole key prefixes (not
+    ``paths.data.survey.x``)."""
+    for old, new in (aliases or {}).items():
+        message = re.sub(rf"(?<![\w.]){re.escape(old)}", new, message)
+    return message
+
+
+def _human_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def _existing_parent(path: Path) -> Path:
+    path = Path(path).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def os_error_message(err: OSError) -> str:
+    """One line for an ``OSError`` of the user's environment, naming its path: no
+    permission, a read-only file system, a full disk (with the free space), a missing
+    file."""
+    path = err.filename if err.filename is not None else "?"
+    other = f" -> {err.filename2}" if getattr(err, "filename2", None) else ""
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        try:
+            free = _human_bytes(shutil.disk_usage(_existing_parent(Path(str(path)))).free)
+        except OSError:
+            free = "unknown"
+        return (
+            f"{path}{other}: no space left on its disk ({free} free there); free some space "
+            "or point paths.output_dir / paths.data_dir at another disk"
+        )
+    if err.errno == errno.EROFS:
+        return (
+            f"{path}{other}: read-only file system; point paths.output_dir / paths.data_dir "
+            "at a writable folder"
+        )
+    if isinstance(err, PermissionError) or err.errno in (errno.EACCES, errno.EPERM):
+        return (
+            f"{path}{other}: permission denied (a read-only folder?); point "
+            "paths.output_dir / paths.data_dir at a writable folder"
+        )
+    if isinstance(err, FileNotFoundError) and err.filename is None:
+        return str(err) or "file not found"
+    reason = err.strerror or str(err) or type(err).__name__
+    return f"{path}{other}: {reason}" if err.filename is not None else str(err) or reason
+
+
+def error_message(err: BaseException) -> str:
+    """The one-line text of a user error (an ``OSError`` by :func:`os_error_message`)."""
+    if isinstance(err, OSError) and (err.filename is not None or err.errno is not None):
+        if err.errno is not None:
+            return os_error_message(err)
+    return str(err) or type(err).__name__
+
+
+def report_user_error(message: str, aliases: Mapping[str, str] | None = None) -> None:
+    """Print ``error: <message>`` as one line on stderr (config keys renamed by
+    ``aliases``, :func:`rename_keys`) and exit with status 2."""
+    print(f"error: {one_line(rename_keys(message, aliases))}", file=sys.stderr, flush=True)
     raise SystemExit(USER_ERROR_EXIT)
 
 
-def user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
+def _remove_failed_run_dir() -> None:
+    """Inside a single Hydra run: remove its run folder when it holds nothing the run made
+    (Hydra's ``.hydra/``, the job's log, ``config.yaml``, empty folders), so a run that
+    failed at start-up leaves no empty run folder behind."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode != RunMode.RUN:
+            return
+        folder = Path(hc.runtime.output_dir)
+    except (ValueError, ImportError, AttributeError):
+        return
+    if not folder.is_dir():
+        return
+    for path in folder.rglob("*"):
+        rel = path.relative_to(folder)
+        if path.is_dir() or rel.parts[0] == ".hydra":
+            continue
+        if len(rel.parts) == 1 and (rel.name in _START_FILES or rel.suffix in _START_SUFFIXES):
+            continue
+        return  # the run made something: keep its folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def user_errors(
+    fn: Callable[..., Any], aliases: Mapping[str, str] | None = None
+) -> Callable[..., Any]:
     """Wrap an entry point: user errors (see :func:`user_error_types`) become one line on
-    stderr and exit status 2, unless :func:`show_traceback`."""
+    stderr (config keys renamed by ``aliases``) and exit status 2, unless
+    :func:`show_traceback`; a Hydra run folder left with nothing in it is removed."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except user_error_types() as err:
-            if show_traceback():
+            if show_traceback() or not is_user_error(err):
                 raise
-            report_user_error(str(err) or type(err).__name__)
+            _remove_failed_run_dir()
+            report_user_error(error_message(err), aliases)
 
     return wrapper
 
@@ -117,71 +249,291 @@ def _suggest(word: str, options: Sequence[str]) -> str:
     return f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
 
 
+def _keys_named(cfg: DictConfig, leaf: str, depth: int = 3, prefix: str = "") -> list[str]:
+    """Full names of the keys called ``leaf`` at most ``depth`` levels down (values not
+    resolved)."""
+    found = []
+    for key in cfg.keys():
+        name = f"{prefix}{key}"
+        if str(key) == leaf:
+            found.append(name)
+        node = cfg._get_node(key)
+        if depth > 1 and isinstance(node, DictConfig) and not node._is_missing():
+            try:
+                found += _keys_named(node, leaf, depth - 1, f"{name}.")
+            except Exception:  # an interpolated node: not searched
+                continue
+    return found
+
+
+def _compose(config_name: str, overrides: list[str]) -> tuple[DictConfig | None, Exception | None]:
+    """``config_name`` composed with ``overrides`` as Hydra will (no ``hydra`` node)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+            return compose(config_name, overrides=overrides), None
+    except (HydraException, OmegaConfBaseException, ValueError) as err:
+        return None, err
+    finally:
+        GlobalHydra.instance().clear()
+
+
 def _override_problem(config_name: str, overrides: list[str]) -> str | None:
     """Compose ``config_name`` with ``overrides`` as Hydra will; the one-line reason it
     fails (with a "did you mean" where a close key or option exists), else ``None``."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException, MissingConfigException
-    from omegaconf.errors import OmegaConfBaseException
+    return _compose_checked(config_name, overrides)[1]
 
-    def attempt(ovr: list[str]) -> tuple[DictConfig | None, Exception | None]:
-        GlobalHydra.instance().clear()
-        try:
-            with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-                return compose(config_name, overrides=ovr), None
-        except (HydraException, OmegaConfBaseException, ValueError) as err:
-            return None, err
-        finally:
-            GlobalHydra.instance().clear()
 
-    _, err = attempt(overrides)
+def _compose_checked(
+    config_name: str, overrides: list[str]
+) -> tuple[DictConfig | None, str | None]:
+    """``(composed config, None)``, or ``(None, the one-line reason it fails)``."""
+    from hydra.errors import MissingConfigException
+
+    cfg, err = _compose(config_name, overrides)
     if err is None:
-        return None
+        return cfg, None
     text = one_line(str(err).replace("Set the environment variable HYDRA_FULL_ERROR=1", ""))
     if isinstance(err, MissingConfigException) and err.missing_cfg_file:
         name = str(err.missing_cfg_file).rsplit("/", 1)[-1]
-        return one_line(str(err).splitlines()[0]) + _suggest(name, err.options or [])
+        return None, one_line(str(err).splitlines()[0]) + _suggest(name, err.options or [])
     match = re.search(r"Could not override '([^']+)'", text)
     if match:
         key = match.group(1)
         parent, _, leaf = key.rpartition(".")
         rest = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") != key]
-        base, _ = attempt(rest)
+        base, _ = _compose(config_name, rest)
         options: list[str] = []
+        hint = ""
         if base is not None:
             node = OmegaConf.select(base, parent) if parent else base
             if isinstance(node, DictConfig):
                 options = [str(k) for k in node.keys()]
-        hint = _suggest(leaf, options)
-        return f"unknown config key '{key}'{hint} (to add a new key: +{key}=...)"
-    return text
+            hint = _suggest(leaf, options)
+            if not hint:  # the key exists deeper down: `crs=` for `survey.crs=`
+                deeper = [k for k in _keys_named(base, leaf) if k != key]
+                if deeper:
+                    hint = f"; did you mean {' or '.join(repr(k) for k in deeper[:3])}?"
+        return None, f"unknown config key '{key}'{hint} (to add a new key: +{key}=...)"
+    return None, text
 
 
-def hydra_entry(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
-    """``@hydra.main`` for this project's entry points, with one-line user errors.
+# ----------------------------------------------------------------------------- start-up checks
+#: config nodes whose ``crs`` / ``*_crs`` keys are checked before a run starts
+CRS_NODES = ("survey", "data.survey")
 
-    Before Hydra runs, a single run's overrides are composed once so that a typo'd key or
-    group option is reported in one line with a "did you mean" (Hydra's own short message
-    otherwise); inside the task, user errors are one line too (:func:`user_errors`).
+
+def check_crs_keys(cfg: DictConfig) -> None:
+    """Every ``crs`` / ``*_crs`` key of the survey nodes (:data:`CRS_NODES`) names a CRS
+    pyproj knows, else ``ValueError`` naming the key, the expected and the found value."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    for prefix in CRS_NODES:
+        node = OmegaConf.select(cfg, prefix, default=None, throw_on_resolution_failure=False)
+        if not isinstance(node, DictConfig):
+            continue
+        for key in node.keys():
+            key = str(key)
+            if key != "crs" and not key.endswith("_crs"):
+                continue
+            try:
+                value = node.get(key)
+            except Exception:  # an interpolation that does not resolve here: checked later
+                continue
+            if value is None or not isinstance(value, str | int):
+                continue
+            try:
+                CRS.from_user_input(value)
+            except CRSError:
+                raise ValueError(
+                    f"config key '{prefix}.{key}': expected a coordinate reference system "
+                    f"pyproj knows (e.g. EPSG:32633, or null to take the file's), found "
+                    f"{value!r}"
+                ) from None
+
+
+def check_writable(cfg: DictConfig, keys: Sequence[str] = ("paths.output_dir",)) -> None:
+    """Each folder of ``keys`` exists as a writable folder or can be made (its nearest
+    existing parent is writable), else ``PermissionError`` naming it."""
+    for key in keys:
+        try:
+            value = OmegaConf.select(cfg, key, default=None)
+        except Exception:
+            continue
+        if value is None:
+            continue
+        parent = _existing_parent(Path(str(value)).expanduser())
+        if not os.access(parent, os.W_OK):
+            code = errno.EROFS if _read_only_fs(parent) else errno.EACCES
+            raise PermissionError(code, os.strerror(code), str(parent))
+
+
+def _read_only_fs(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        return False
+
+
+def startup_checks(cfg: DictConfig, check: Callable[[DictConfig], None] | None = None) -> None:
+    """What every Hydra entry point checks on the composed config before Hydra makes the
+    run folder: the CRS keys, a writable ``paths.output_dir``, then the entry point's own
+    ``check``."""
+    check_crs_keys(cfg)
+    check_writable(cfg)
+    if check is not None:
+        check(cfg)
+
+
+# ----------------------------------------------------------------------------- help
+@dataclass(frozen=True)
+class CliHelp:
+    """What ``--help`` prints: a usage line, a sentence, the main keys and examples.
+
+    Args:
+        prog: the command (``sss2bathy-map``).
+        usage: the arguments after ``prog`` on the usage line.
+        summary: one sentence (wrapped).
+        keys: ``(key, what it is)`` of the main keys (short).
+        examples: whole command lines.
+        hydra: a Hydra entry point: the lines on ``--trace``, ``--hydra-help`` and
+            ``--cfg job`` follow.
+    """
+
+    prog: str
+    usage: str
+    summary: str
+    keys: Sequence[tuple[str, str]] = ()
+    examples: Sequence[str] = ()
+    hydra: bool = True
+
+    def text(self, width: int = 88) -> str:
+        lines = [f"usage: {self.prog} {self.usage}", ""]
+        lines += textwrap.wrap(self.summary, width)
+        if self.keys:
+            lines += ["", "main keys:"]
+            col = min(26, max(len(k) for k, _ in self.keys) + 2)
+            for key, what in self.keys:
+                body = textwrap.wrap(what, width - col - 2) or [""]
+                first = f"  {key:<{col}}" if len(key) < col else f"  {key}\n  {'':<{col}}"
+                lines.append(first + body[0])
+                lines += [f"  {'':<{col}}{b}" for b in body[1:]]
+        if self.examples:
+            lines += ["", "examples:"] + [f"  {e}" for e in self.examples]
+        if self.hydra:
+            lines += [
+                "",
+                "options:",
+                "  --trace        show the traceback of an error instead of one line",
+                "  --cfg job      print the composed config and exit",
+                "  --hydra-help   every config group and key (Hydra's full help)",
+            ]
+        return "\n".join(lines) + "\n"
+
+
+def _group_options(group: str) -> list[str]:
+    folder = Path(config_dir()) / group
+    return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
+
+
+def default_help(config_name: str, doc: str | None) -> CliHelp:
+    """A :class:`CliHelp` from an entry point's module docstring (its first line and its
+    ``sss2bathy-...`` example lines) and its config's groups (``conf/<config_name>.yaml``)."""
+    prog = f"sss2bathy-{config_name}"
+    text = (doc or "").strip()
+    first = text.split("\n\n", 1)[0].replace("\n", " ")
+    summary = re.sub(r"^``[^`]+``:\s*", "", first)
+    examples = [ln.strip() for ln in text.splitlines() if ln.strip().startswith("sss2bathy-")]
+    keys: list[tuple[str, str]] = []
+    try:
+        defaults = OmegaConf.load(Path(config_dir()) / f"{config_name}.yaml").get("defaults")
+    except OSError:
+        defaults = None
+    for entry in defaults or []:
+        if not isinstance(entry, DictConfig):
+            continue
+        for group, value in entry.items():
+            group = str(group).split("@", 1)[0].removeprefix("optional ")
+            if group in ("hydra", "paths", "extras", "debug", "hparams_search", "_self_"):
+                continue
+            options = _group_options(group)
+            if options:
+                shown = ", ".join(options)
+                keys.append((f"{group}=NAME", f"one of {shown} (default {value or 'none'})"))
+    keys.append(("KEY=VALUE", "any key of the composed config (see --cfg job)"))
+    return CliHelp(prog, "[KEY=VALUE ...] [-m] [--trace] [--hydra-help]", summary, keys, examples)
+
+
+def _hydra_full_help(hydra_main: Callable[[], Any]) -> None:
+    """``--hydra-help``: Hydra's help of the app (config groups and the composed config),
+    then Hydra's own options."""
+    argv = list(sys.argv)
+    try:
+        for flag in ("--help", HYDRA_HELP_FLAG):
+            sys.argv = [argv[0], *(flag if a == HYDRA_HELP_FLAG else a for a in argv[1:])]
+            try:
+                hydra_main()
+            except SystemExit as done:
+                if done.code not in (0, None):
+                    raise
+    finally:
+        sys.argv = argv
+    raise SystemExit(0)
+
+
+def hydra_entry(
+    config_name: str,
+    help: CliHelp | None = None,
+    check: Callable[[DictConfig], None] | None = None,
+    aliases: Mapping[str, str] | None = None,
+) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
+    """``@hydra.main`` for this project's entry points, with short help and one-line user
+    errors.
+
+    ``--help`` / ``-h`` print ``help`` (default :func:`default_help`); ``--hydra-help``
+    prints Hydra's full help. Before Hydra runs (and makes the run folder), a single run's
+    overrides are composed once so that a typo'd key or group option is reported in one
+    line with a "did you mean", and :func:`startup_checks` (with the entry point's own
+    ``check``) run on the composed config. Inside the task, user errors are one line too
+    (:func:`user_errors`). ``aliases`` rename config keys in every message
+    (:func:`rename_keys`), for an entry point whose keys sit elsewhere than in the config
+    its errors come from.
     """
     import hydra
 
     def decorate(task: Callable[[DictConfig], Any]) -> Callable[[], Any]:
         hydra_main = hydra.main(
             version_base="1.3", config_path=config_dir(), config_name=config_name
-        )(user_errors(task))
+        )(user_errors(task, aliases))
+        text = help or default_help(config_name, sys.modules[task.__module__].__doc__)
 
         @functools.wraps(task)
         def entry(cfg_passthrough: DictConfig | None = None) -> Any:
             if cfg_passthrough is not None:
                 return hydra_main(cfg_passthrough)
             args = sys.argv[1:]
-            plain = all(not a.startswith("-") for a in args)  # no -m, --cfg, --help, ...
+            if any(a in HELP_FLAGS for a in args):
+                print(text.text(), end="", flush=True)
+                raise SystemExit(0)
+            if HYDRA_HELP_FLAG in args:
+                _hydra_full_help(hydra_main)
+            plain = all(not a.startswith("-") for a in args)  # no -m, --cfg, ...
             if plain and not show_traceback():
-                problem = _override_problem(config_name, args)
+                cfg, problem = _compose_checked(config_name, args)
                 if problem is not None:
-                    report_user_error(problem)
+                    report_user_error(problem, aliases)
+                try:
+                    startup_checks(cfg, check)
+                except user_error_types() as err:
+                    if not is_user_error(err):
+                        raise
+                    report_user_error(error_message(err), aliases)
             return hydra_main()
 
         return entry
@@ -206,10 +558,30 @@ def apply_extras(cfg: DictConfig, print_config: bool = True) -> None:
         log_config(cfg)
 
 
-def log_config(cfg: DictConfig) -> None:
-    """Log the composed config when ``extras.print_config`` asks for it."""
-    if (cfg.get("extras") or {}).get("print_config"):
-        log.info("composed config:\n%s", OmegaConf.to_yaml(cfg, resolve=False))
+def _hydra_run_dir() -> Path | None:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir)
+    except (ValueError, ImportError):
+        return None
+
+
+def log_config(cfg: DictConfig, run_dir: str | Path | None = None) -> Path | None:
+    """With ``extras.print_config``: write the composed config to ``config.yaml`` in the run
+    folder (``run_dir``, else the Hydra job's) and log where, the config itself at DEBUG
+    only (a console or a redirected log keeps the run's own messages). Returns the file."""
+    if not (cfg.get("extras") or {}).get("print_config"):
+        return None
+    text = OmegaConf.to_yaml(cfg, resolve=False)
+    log.debug("composed config:\n%s", text)
+    folder = Path(run_dir) if run_dir is not None else _hydra_run_dir()
+    if folder is None:
+        return None
+    path = folder / "config.yaml"
+    atomic_write_text(path, text)
+    log.info("config: %s", path)
+    return path
 
 
 def git_revision() -> str | None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.cli._common import CliHelp, apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.eval")
 
@@ -79,7 +79,29 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
 setup_environment()
 
 
-@hydra_entry("eval")
+HELP = CliHelp(
+    prog="sss2bathy-eval",
+    usage="(map_path=TIF | ckpt_path=CKPT) [data/survey=NAME] [split=NAME] [KEY=VALUE ...]",
+    summary=(
+        "Score a saved SIREN map (GeoTIFF) or checkpoint against the survey's MBES grid over "
+        "the cells near a split's sonar tracks; metrics and PNGs go to the run folder."
+    ),
+    keys=(
+        ("map_path=TIF", "a map GeoTIFF (map.tif of a run); or:"),
+        ("ckpt_path=CKPT", "a SIREN checkpoint (.ckpt)"),
+        ("data/survey=NAME", "the survey the map is of (synthetic_d1 by default)"),
+        ("split=NAME", "lines whose tracks define the scored area (test)"),
+        ("region_radius_m=M", "radius around the tracks (null: the swath half-width)"),
+        ("scale=NAME", "tiny | demo (default) | paper"),
+    ),
+    examples=(
+        "sss2bathy-eval ckpt_path=outputs/runs/siren_gt_n2d/RUN/checkpoints/last.ckpt",
+        "sss2bathy-eval map_path=outputs/runs/siren_cnn_n2d/RUN/map.tif split=test",
+    ),
+)
+
+
+@hydra_entry("eval", help=HELP)
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 

@@ -15,6 +15,7 @@ of the kept altimeter points. It composes ``conf/train.yaml`` and runs
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import re
@@ -25,12 +26,65 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.cli._common import (
+    CliHelp,
+    apply_extras,
+    hydra_entry,
+    log_config,
+    setup_environment,
+)
 from sss2bathy.metrics.bathy import MAP_TAGS
 
 log = logging.getLogger("sss2bathy.map")
 
 DEFAULT_EXPERIMENT = {True: "siren_cnn_n2d", False: "siren_lambert"}
+#: the ``method`` values: SIREN experiments that need no MBES grid
+MAP_METHODS = ("siren_lambert", "siren_heights_only", "siren_cnn_n2d")
+#: config keys of ``conf/train.yaml`` (what errors from the import and the fit name) as
+#: ``conf/map.yaml`` spells them
+KEY_ALIASES = {
+    "data.survey.": "survey.",
+    "data.cnn_checkpoint": "cnn_checkpoint",
+    "data.holdout.": "holdout.",
+}
+
+HELP = CliHelp(
+    prog="sss2bathy-map",
+    usage="files=PATH [cnn_checkpoint=CKPT] [method=NAME] [KEY=VALUE ...] [--trace]",
+    summary=(
+        "XTF sidescan lines (+ an optional CNN checkpoint) -> a georeferenced bathymetry "
+        "map: map.tif (GeoTIFF), map.png and metrics.json in the run folder, with the "
+        "held-out altimeter error beside that of interpolating the altimeter."
+    ),
+    keys=(
+        ("files=PATH", "a folder of .xtf files, one file, a glob, or a list [a,b]"),
+        (
+            "method=NAME",
+            f"{', '.join(MAP_METHODS)} (default: siren_cnn_n2d with a "
+            "checkpoint, else siren_lambert)",
+        ),
+        ("cnn_checkpoint=CKPT", "a CNN checkpoint (sss2bathy-train experiment=cnn)"),
+        (
+            "survey.KEY=VALUE",
+            "import and sonar settings, e.g. survey.crs=EPSG:32633 "
+            "survey.tilt_deg=20 survey.altitude_tolerance_m=null",
+        ),
+        ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
+        ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
+        ("logger=NAME", "tensorboard (default) | none"),
+        ("torch_threads=N", "CPU threads of the fit (default: torch's)"),
+        (
+            "overrides=[...]",
+            "further sss2bathy-train overrides, e.g. 'overrides=[\"trainer.max_epochs=100\"]'",
+        ),
+        ("paths.output_dir=DIR", "where run folders go (outputs/); paths.data_dir: imports"),
+    ),
+    examples=(
+        "sss2bathy-map files=/data/lines",
+        "sss2bathy-map files=/data/line1.xtf cnn_checkpoint=outputs/runs/cnn/RUN/"
+        "checkpoints/last.ckpt scale=tiny logger=none",
+    ),
+)
 
 
 def default_survey_name(files: Any) -> str:
@@ -49,9 +103,25 @@ def default_survey_name(files: Any) -> str:
 
 
 def map_experiment(cfg: Mapping[str, Any]) -> str:
-    """The ``sss2bathy-train`` experiment of a map config: ``method``, else SIREN-CNN-N2d
-    with a CNN checkpoint and SIREN-Lambert without."""
-    return str(cfg.get("method") or DEFAULT_EXPERIMENT[bool(cfg.get("cnn_checkpoint"))])
+    """The ``sss2bathy-train`` experiment of a map config: ``method`` (one of
+    :data:`MAP_METHODS`, else ``ValueError``), else SIREN-CNN-N2d with a CNN checkpoint and
+    SIREN-Lambert without."""
+    method = cfg.get("method")
+    if not method:
+        return DEFAULT_EXPERIMENT[bool(cfg.get("cnn_checkpoint"))]
+    if str(method) not in MAP_METHODS:
+        close = difflib.get_close_matches(str(method), MAP_METHODS, n=1, cutoff=0.5)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise ValueError(
+            f"method: expected one of {', '.join(MAP_METHODS)} (or null), found "
+            f"{str(method)!r}{hint}"
+        )
+    return str(method)
+
+
+def check_map_config(cfg: DictConfig) -> None:
+    """What ``sss2bathy-map`` checks before its run folder is made: the method."""
+    map_experiment(cfg)
 
 
 def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[str]:
@@ -162,8 +232,9 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     from sss2bathy.cli.train import fit
 
     train_cfg = compose_train_config(cfg, run_dir, choices)
-    apply_extras(train_cfg)
-    result = fit(train_cfg, run_dir)
+    # the config goes to run_dir/config.yaml once every constructor's check passed
+    apply_extras(train_cfg, print_config=False)
+    result = fit(train_cfg, run_dir, on_checked=lambda: log_config(train_cfg, run_dir))
     metrics = {}
     for key, value in result.metrics.items():
         try:
@@ -182,7 +253,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
 setup_environment()
 
 
-@hydra_entry("map")
+@hydra_entry("map", help=HELP, check=check_map_config, aliases=KEY_ALIASES)
 def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 

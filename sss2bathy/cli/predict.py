@@ -10,7 +10,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.cli._common import CliHelp, apply_extras, hydra_entry, setup_environment
 from sss2bathy.data.cnn_normals import predict_normals, resolve_cnn_checkpoint
 from sss2bathy.data.sources import load_survey
 from sss2bathy.draping import DrapedLine, drape_survey
@@ -60,7 +60,30 @@ def predict(cfg: DictConfig) -> dict:
 setup_environment()
 
 
-@hydra_entry("predict")
+HELP = CliHelp(
+    prog="sss2bathy-predict",
+    usage="[data/survey=NAME] [ckpt_path=CKPT|latest] [split=NAME|all] [KEY=VALUE ...]",
+    summary=(
+        "Run a CNN checkpoint over whole lines of a survey and cache the n_lat waterfalls "
+        "(the input of SIREN-CNN-N2d) under paths.data_dir/<survey>/predictions/."
+    ),
+    keys=(
+        ("data/survey=NAME", "synthetic_d1 (default), synthetic_d2, ... or xtf"),
+        ("ckpt_path=CKPT", "a CNN checkpoint, or latest (newest under outputs/runs/cnn)"),
+        ("split=NAME", "a split of the survey (test), or all"),
+        ("precision=P", "fp32 (default) | bf16"),
+        ("overlap=F", "window overlap in [0, 1) (null: the checkpoint's)"),
+        ("render=BOOL", "render one line's prediction to PNG (true)"),
+    ),
+    examples=(
+        "sss2bathy-predict data/survey=synthetic_d2 ckpt_path=latest split=all",
+        "sss2bathy-predict data/survey=xtf data.survey.files=/data/lines "
+        "ckpt_path=outputs/runs/cnn/RUN/checkpoints/last.ckpt",
+    ),
+)
+
+
+@hydra_entry("predict", help=HELP)
 def main(cfg: DictConfig) -> None:
     apply_extras(cfg)
     preds = predict(cfg)

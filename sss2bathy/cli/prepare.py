@@ -12,7 +12,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from sss2bathy.cli._common import apply_extras, hydra_entry, setup_environment
+from sss2bathy.cli._common import CliHelp, apply_extras, hydra_entry, setup_environment
 
 log = logging.getLogger("sss2bathy.prepare")
 
@@ -55,7 +55,31 @@ def prepare(cfg: DictConfig) -> Path:
 setup_environment()
 
 
-@hydra_entry("prepare")
+HELP = CliHelp(
+    prog="sss2bathy-prepare",
+    usage="[data/survey=NAME] [scale=NAME] [KEY=VALUE ...] [-m] [--trace]",
+    summary=(
+        "Generate a synthetic survey or import XTF files into paths.data_dir/<name>/ "
+        "(cached while unchanged), drape its lines on its MBES grid, render figures."
+    ),
+    keys=(
+        ("data/survey=NAME", "synthetic_d1 (default), synthetic_d2, synthetic_d3, ... or xtf"),
+        ("data.survey.files=PATH", "with data/survey=xtf: a folder, file or glob of .xtf"),
+        ("data.survey.mbes_grid=TIF", "with data/survey=xtf: an MBES GeoTIFF to drape on"),
+        ("scale=NAME", "tiny | demo (default) | paper"),
+        ("drape=BOOL", "drape the lines on the MBES grid (true)"),
+        ("force=BOOL", "make the survey again even when the cache matches (false)"),
+        ("paths.data_dir=DIR", "where survey folders go (data/)"),
+    ),
+    examples=(
+        "sss2bathy-prepare data/survey=synthetic_d1 scale=demo",
+        "sss2bathy-prepare data/survey=xtf data.survey.files=/data/lines "
+        "data.survey.mbes_grid=mbes.tif",
+    ),
+)
+
+
+@hydra_entry("prepare", help=HELP)
 def main(cfg: DictConfig) -> None:
     apply_extras(cfg)
     folder = prepare(cfg)

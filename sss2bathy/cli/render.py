@@ -71,8 +71,18 @@ SUBCOMMANDS: dict[
 }
 
 
+EXAMPLES = """examples:
+  sss2bathy-render waterfall --survey data/synthetic_d1_demo --line line_002 --out wf.png
+  sss2bathy-render terrain --survey data/synthetic_d1_demo --out terrain.png"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sss2bathy-render", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="sss2bathy-render",
+        description=__doc__.split("\n")[0].replace("``", ""),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (help_text, add_args, run) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)

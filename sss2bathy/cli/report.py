@@ -9,14 +9,25 @@ from __future__ import annotations
 
 import argparse
 import logging
+import textwrap
 
 from sss2bathy.cli._common import project_root, setup_environment
 
 
 def main(argv: list[str] | None = None) -> None:
     setup_environment()
-    parser = argparse.ArgumentParser(prog="sss2bathy-report", description=__doc__.split("\n")[0])
-    parser.add_argument("--outputs", default=str(project_root() / "outputs"))
+    parser = argparse.ArgumentParser(
+        prog="sss2bathy-report",
+        description=textwrap.fill(" ".join(__doc__.split("\n\n")[0].split()).replace("``", "")),
+        epilog="examples:\n  sss2bathy-report\n  sss2bathy-report --outputs /scratch/outputs "
+        "--out /tmp/report",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--outputs",
+        default=str(project_root() / "outputs"),
+        help="the outputs folder whose runs are gathered (default: %(default)s)",
+    )
     parser.add_argument("--out", default=None, help="report folder (default OUTPUTS/report)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
