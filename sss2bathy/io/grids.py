@@ -13,6 +13,15 @@ of the SW cell, square cells). CRS handling, in one place (:func:`read_grid`):
 * with ``origin`` the grid is shifted into the survey's local frame (x - easting,
   y - northing).
 
+Damaged files are refused in one line naming the file (:class:`SurveyFormatError`): not a
+raster of the suffix's format (a PNG named ``.tif``), no georeferencing, truncated or
+unreadable, no valid cell. Repairs are WARNINGs with counts, made at the file's own
+resolution before any reprojection: cells holding an untagged no-data value (beyond
++-11 km, or a -9999-style sentinel far from every other height) become no-data,
+non-square cells are resampled to square ones, and with ``spikes`` (a
+:class:`SpikeFilter`) isolated outliers become no-data. ``z_positive="down"`` reads
+depths (positive down) as heights for every format.
+
 BAG (Bathymetric Attributed Grid, HDF5): ``BAG_root/elevation`` (no-data 1e6), row 0 is the
 **south** row; georeferenced from the SW corner point of the ISO metadata
 (``BAG_root/metadata``, ``gmd:cornerPoints``; the corner is a cell centre) and the
@@ -29,6 +38,7 @@ import re
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +54,7 @@ __all__ = [
     "RASTER_SUFFIXES",
     "STATISTICS",
     "XYZ_SUFFIXES",
+    "SpikeFilter",
     "Z_POSITIVE",
     "crs_equivalent",
     "grid_points",
@@ -64,6 +75,83 @@ BAG_NODATA = 1.0e6
 CRS_MISMATCH = ("reproject", "error")
 Z_POSITIVE = ("up", "down")  # heights (negative below the datum) or depths
 STATISTICS = ("mean", "median")  # height per cell of gridded points
+#: GDAL drivers a raster suffix must be read with (a PNG renamed ``.tif`` is not a grid)
+RASTER_DRIVERS = {
+    ".tif": ("GTiff", "COG"),
+    ".tiff": ("GTiff", "COG"),
+    ".gtiff": ("GTiff", "COG"),
+    ".asc": ("AAIGrid",),
+}
+#: no seabed is this far from any datum (the deepest ocean is ~10.9 km): such values are
+#: untagged no-data (3.4e38 float maxima, 1e6 fills)
+HEIGHT_LIMIT_M = 11_000.0
+#: common no-data values, taken as such when untagged and far from every other height
+SENTINELS = (-9999.0, -99999.0, -32767.0, -32768.0, 9999.0, 99999.0)
+SENTINEL_GAP_M = 1_000.0
+_MAGIC = (
+    (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+    (b"\xff\xd8\xff", "a JPEG image"),
+    (b"GIF8", "a GIF image"),
+    (b"BM", "a BMP image"),
+    (b"\x89HDF\r\n\x1a\n", "an HDF5 file"),
+    (b"II*\x00", "a TIFF"),
+    (b"MM\x00*", "a TIFF"),
+    (b"II+\x00", "a BigTIFF"),
+    (b"MM\x00+", "a BigTIFF"),
+    (b"PK\x03\x04", "a ZIP archive"),
+    (b"%PDF", "a PDF document"),
+    (b"\x1f\x8b", "a gzip file"),
+    (b"CDF", "a netCDF file"),
+)
+
+
+@dataclass(frozen=True)
+class SpikeFilter:
+    """Spikes: valid cells more than ``threshold_m`` from the median of their
+    ``window_cells`` x ``window_cells`` neighbourhood and, with ``spread_factor``, also more
+    than ``spread_factor`` robust standard deviations (1.4826 x the median absolute
+    deviation) of that neighbourhood, so that steep or rough terrain (a large local spread)
+    keeps its crests. ``key`` names the threshold's setting in the warning."""
+
+    threshold_m: float
+    window_cells: int = 5
+    spread_factor: float | None = None
+    key: str = "spike_threshold_m"
+
+    def __post_init__(self) -> None:
+        if not self.threshold_m > 0:
+            raise ValueError(f"{self.key}: expected > 0 (m), found {self.threshold_m}")
+        w = self.window_cells
+        if not isinstance(w, (int, np.integer)) or w < 3 or w % 2 == 0:
+            raise ValueError(f"window_cells: expected an odd integer >= 3, found {w!r}")
+        if self.spread_factor is not None and not self.spread_factor > 0:
+            raise ValueError(f"spread_factor: expected > 0 or None, found {self.spread_factor}")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _sniff(path: Path) -> str:
+    """What a file holds, in words, from its size and first bytes."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError as exc:
+        return f"an unreadable file ({_one_line(exc)})"
+    if size == 0:
+        return "an empty file (0 bytes)"
+    for magic, what in _MAGIC:
+        if head.startswith(magic):
+            return f"{what} of {size} bytes"
+    try:
+        text = head.decode("ascii")
+        if text.isprintable() or all(c.isprintable() or c in "\r\n\t" for c in text):
+            return f"text of {size} bytes starting {text[:24]!r}"
+    except UnicodeDecodeError:
+        pass
+    return f"{size} bytes starting {head[:8].hex(' ')}"
 
 
 # ----------------------------------------------------------------------------- CRS helpers
@@ -178,10 +266,17 @@ def _finish_raster(
     cell_size: float | None,
     target_crs: Any,
     on_crs_mismatch: str,
+    info: dict | None = None,
 ) -> BathyGrid:
     """Common tail of raster readers: CRS check, reprojection/resampling, grid."""
+    from rasterio.transform import array_bounds
+
     h, w = data.shape
     cx, cy = transform.c + transform.a * w / 2, transform.f + transform.e * h / 2
+    if info is not None:
+        x_a, y_a, x_b, y_b = array_bounds(h, w, transform)
+        info["file_crs"] = _crs_string(crs) if crs is not None else None
+        info["file_bounds"] = [min(x_a, x_b), min(y_a, y_b), max(x_a, x_b), max(y_a, y_b)]
     dst = crs
     if target_crs is not None:
         if crs is None:
@@ -204,6 +299,22 @@ def _finish_raster(
             path, "crs", "a projected CRS in metres (give target_crs)", _crs_name(dst)
         )
     square = math.isclose(abs(transform.a), abs(transform.e), rel_tol=1e-6)
+    if not square:
+        finer = min(abs(transform.a), abs(transform.e))
+        cell_size = cell_size or finer
+        if crs is not None:
+            log.warning(
+                "%s: cells of %g m (x) by %g m (y) are not square; resampled bilinearly to "
+                "square %g m cells (%d x %d cells -> about %d x %d)",
+                path,
+                abs(transform.a),
+                abs(transform.e),
+                cell_size,
+                h,
+                w,
+                round(h * abs(transform.e) / cell_size),
+                round(w * abs(transform.a) / cell_size),
+            )
     same_cell = cell_size is None or math.isclose(abs(transform.a), cell_size, rel_tol=1e-9)
     if (
         crs is not None
@@ -214,10 +325,168 @@ def _finish_raster(
     elif not (square and same_cell):
         if crs is None:
             raise SurveyFormatError(
-                path, "transform", "square cells of cell_size (no CRS to resample in)", transform
+                path,
+                "transform",
+                "square cells (or a CRS to resample them in)",
+                f"cells of {abs(transform.a):g} m by {abs(transform.e):g} m (wanted "
+                f"{cell_size:g} m square) and no CRS",
             )
         data, transform = _warp(data, transform, crs, crs, cell_size)
     return _north_up_to_grid(data, transform, dst, path, cell_size)
+
+
+def _untagged_nodata(z: np.ndarray, path: Path, info: dict | None, what: str = "cells") -> None:
+    """Set untagged no-data values of ``z`` to NaN in place (a WARNING with their count):
+    infinities, values beyond +-:data:`HEIGHT_LIMIT_M`, and :data:`SENTINELS` lying more
+    than :data:`SENTINEL_GAP_M` from every other height."""
+    finite = np.isfinite(z)
+    bad = np.isinf(z)
+    with np.errstate(invalid="ignore"):
+        bad |= finite & (np.abs(z) >= HEIGHT_LIMIT_M)
+    rest = finite & ~bad
+    for value in SENTINELS:
+        hit = rest & (z == value)
+        if not hit.any():
+            continue
+        others = z[rest & ~hit]
+        if others.size == 0 or np.abs(others - value).min() > SENTINEL_GAP_M:
+            bad |= hit
+            rest &= ~hit
+    n = int(bad.sum())
+    if info is not None:
+        info["untagged_nodata"] = n
+    if n:
+        values = np.unique(z[bad])
+        shown = ", ".join(f"{v:g}" for v in values[:3]) + (", ..." if values.size > 3 else "")
+        log.warning(
+            "%s: %d %s (%.1f %% of those with values) hold %s, not tagged as no-data: "
+            "treated as no-data",
+            path,
+            n,
+            what,
+            100.0 * n / max(int(finite.sum() + np.isinf(z).sum()), 1),
+            shown,
+        )
+        z[bad] = np.nan
+
+
+def _window_median(h: np.ndarray, window_cells: int) -> np.ndarray:
+    """Median of each cell's ``window_cells`` square of valid cells (NaN: none valid)."""
+    half = window_cells // 2
+    padded = np.pad(h, half, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (window_cells, window_cells))
+    median = np.full(h.shape, np.nan)
+    rows = max(1, 2_000_000 // (h.shape[1] * window_cells**2))  # bounded memory per chunk
+    for r0 in range(0, h.shape[0], rows):
+        block = windows[r0 : r0 + rows].reshape(-1, h.shape[1], window_cells**2)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: NaN median
+            median[r0 : r0 + rows] = np.nanmedian(block, axis=-1)
+    return median
+
+
+def _spikes(
+    h: np.ndarray, threshold_m: float, window_cells: int, spread_factor: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(mask, deviation)``: the spike cells and every cell's distance to its window median."""
+    median = _window_median(h, window_cells)
+    with np.errstate(invalid="ignore"):
+        deviation = np.abs(h - median)
+        mask = np.isfinite(h) & (deviation > threshold_m)
+    if spread_factor is not None and mask.any():
+        half = window_cells // 2
+        padded = np.pad(h, half, constant_values=np.nan)
+        windows = np.lib.stride_tricks.sliding_window_view(padded, (window_cells, window_cells))
+        iy, ix = np.nonzero(mask)
+        cand = windows[iy, ix].reshape(iy.size, -1)  # only the candidates: few cells
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mad = np.nanmedian(np.abs(cand - median[iy, ix, None]), axis=1)
+        keep = deviation[iy, ix] <= spread_factor * 1.4826 * mad
+        mask[iy[keep], ix[keep]] = False
+    return mask, deviation
+
+
+def spike_mask(
+    heights: np.ndarray,
+    threshold_m: float,
+    window_cells: int = 5,
+    spread_factor: float | None = None,
+) -> np.ndarray:
+    """``(ny, nx)`` bool: valid cells more than ``threshold_m`` from the median of their
+    ``window_cells`` x ``window_cells`` neighbourhood (valid cells only; the grid's edge
+    and no-data do not count). Real grids carry such outliers (fliers, injected spikes).
+    With ``spread_factor`` a cell must also lie that many robust standard deviations
+    (1.4826 x MAD) of its neighbourhood away (see :class:`SpikeFilter`).
+
+    >>> h = np.zeros((7, 7)); h[3, 3] = 5.0
+    >>> np.argwhere(spike_mask(h, 1.0)).tolist()
+    [[3, 3]]
+    """
+    h = np.asarray(heights, dtype=np.float64)
+    if h.ndim != 2:
+        raise ValueError(f"heights: expected a (ny, nx) grid, found shape {h.shape}")
+    if not threshold_m > 0:
+        raise ValueError(f"threshold_m: expected > 0, found {threshold_m}")
+    if window_cells < 3 or window_cells % 2 == 0:
+        raise ValueError(f"window_cells: expected an odd integer >= 3, found {window_cells}")
+    return _spikes(h, threshold_m, window_cells, spread_factor)[0]
+
+
+def _despike(h: np.ndarray, path: Path, spikes: SpikeFilter | None, info: dict | None) -> None:
+    """Set the spikes of grid ``h`` to NaN in place, with a WARNING (count, largest)."""
+    if spikes is None:
+        return
+    mask, deviation = _spikes(
+        np.asarray(h, dtype=np.float64),
+        spikes.threshold_m,
+        spikes.window_cells,
+        spikes.spread_factor,
+    )
+    n = int(mask.sum())
+    largest = float(deviation[mask].max()) if n else 0.0
+    if info is not None:
+        info["spikes_removed"] = n
+        info["spike_max_deviation_m"] = largest
+    if not n:
+        return
+    valid = int(np.isfinite(h).sum())
+    share = 100.0 * n / max(valid, 1)
+    rule = f"more than {spikes.threshold_m:g} m from the median of their {spikes.window_cells}"
+    rule += f"x{spikes.window_cells} cells"
+    if spikes.spread_factor is not None:
+        rule += f" and {spikes.spread_factor:g} times its robust spread"
+    log.warning(
+        "%s: %d spike cells (%.2f %% of %d valid) set to no-data: %s; largest deviation "
+        "%.2f m, median %.2f m (%s: null keeps them)%s",
+        path,
+        n,
+        share,
+        valid,
+        rule,
+        largest,
+        float(np.median(deviation[mask])),
+        spikes.key,
+        "; that many suggests rough or steep terrain rather than spikes: raise the threshold"
+        if share > 1.0
+        else "",
+    )
+    h[mask] = np.nan
+
+
+def _prepare_heights(
+    z: np.ndarray,
+    path: Path,
+    z_positive: str,
+    spikes: SpikeFilter | None,
+    info: dict | None,
+) -> np.ndarray:
+    """A grid's heights at its own resolution: untagged no-data, sign, spikes."""
+    _untagged_nodata(z, path, info)
+    if z_positive == "down":
+        z = -z
+    _despike(z, path, spikes, info)
+    return z
 
 
 def read_raster(
@@ -227,26 +496,71 @@ def read_raster(
     *,
     band: int = 1,
     on_crs_mismatch: str = "reproject",
+    z_positive: str = "up",
+    spikes: SpikeFilter | None = None,
+    info: dict | None = None,
 ) -> BathyGrid:
-    """A GeoTIFF or ESRI ASCII grid (any GDAL raster) band as a grid (heights, m, up)."""
+    """A GeoTIFF or ESRI ASCII grid band as a grid (heights, m; ``z_positive="down"``:
+    depths). The file must be of its suffix's format (:data:`RASTER_DRIVERS`),
+    georeferenced and readable to the end; untagged no-data and ``spikes`` are repaired at
+    the file's resolution (WARNINGs), before any reprojection. ``info`` (a dict) receives
+    the file's CRS and bounds and the repairs' counts."""
     import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.errors import NotGeoreferencedWarning
 
     path = Path(path)
+    drivers = RASTER_DRIVERS.get(path.suffix.lower(), ())
+    what = "an ESRI ASCII grid" if drivers == ("AAIGrid",) else "a GeoTIFF"
     try:
-        src_ctx = rasterio.open(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            src_ctx = rasterio.open(path)
     except Exception as exc:  # rasterio raises its own error types
         raise SurveyFormatError(
-            path, "file", "a readable raster (GeoTIFF/ASCII grid)", exc
+            path, "file", f"{what} (a readable raster)", f"{_sniff(path)}: {_one_line(exc)}"
         ) from exc
     with src_ctx as src:
+        if drivers and src.driver not in drivers:
+            raise SurveyFormatError(
+                path,
+                "file",
+                f"{what} (GDAL driver {drivers[0]})",
+                f"{_sniff(path)}, read by GDAL's {src.driver} driver",
+            )
+        if src.transform.is_identity and src.crs is None and not src.gcps[0]:
+            raise SurveyFormatError(
+                path,
+                "georeferencing",
+                "a georeferenced grid (a geotransform: origin and cell size)",
+                f"none: a {src.width} x {src.height} {src.dtypes[0]} image",
+            )
         if not 1 <= band <= src.count:
             raise SurveyFormatError(path, "band", f"a band in 1..{src.count}", band)
-        data = src.read(band).astype(np.float32)
+        colours = {ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.palette}
+        if colours & set(src.colorinterp):
+            raise SurveyFormatError(
+                path,
+                "bands",
+                "a grid of heights (one value band)",
+                f"a colour image ({src.count} bands {', '.join(c.name for c in src.colorinterp)})",
+            )
+        try:
+            data = src.read(band).astype(np.float32)
+        except Exception as exc:  # rasterio.errors.RasterioIOError on a damaged file
+            cause = exc.__cause__ or exc.__context__ or exc
+            raise SurveyFormatError(
+                path,
+                f"band {band}",
+                f"all {src.width} x {src.height} cells readable",
+                f"a read error in {_sniff(path)} (truncated or corrupt?): {_one_line(cause)}",
+            ) from exc
         if src.nodata is not None and np.isfinite(src.nodata):
             data[data == np.float32(src.nodata)] = np.nan
         transform = src.transform
         crs = src.crs.to_wkt() if src.crs else None
-    return _finish_raster(data, transform, crs, path, cell_size, target_crs, on_crs_mismatch)
+    data = _prepare_heights(data, path, z_positive, spikes, info)
+    return _finish_raster(data, transform, crs, path, cell_size, target_crs, on_crs_mismatch, info)
 
 
 # ----------------------------------------------------------------------------- BAG
@@ -319,8 +633,12 @@ def read_bag(
     target_crs: Any = None,
     *,
     on_crs_mismatch: str = "reproject",
+    z_positive: str = "up",
+    spikes: SpikeFilter | None = None,
+    info: dict | None = None,
 ) -> BathyGrid:
-    """A BAG's elevation layer as a grid (see the module docstring for the conventions)."""
+    """A BAG's elevation layer as a grid (see the module docstring for the conventions;
+    ``z_positive``, ``spikes`` and ``info`` as in :func:`read_raster`)."""
     import h5py
     from rasterio.transform import from_origin
 
@@ -331,18 +649,38 @@ def read_bag(
                 raise SurveyFormatError(
                     path, "BAG_root", "elevation and metadata datasets", sorted(f.keys())
                 )
-            elev = f["BAG_root/elevation"][()].astype(np.float32)
-            xml = f["BAG_root/metadata"][()].tobytes()
-    except OSError as exc:
-        raise SurveyFormatError(path, "file", "a readable BAG (HDF5)", exc) from exc
-    if elev.ndim != 2:
+            elev = np.asarray(f["BAG_root/elevation"][()], dtype=np.float32)
+            xml = np.asarray(f["BAG_root/metadata"][()]).tobytes()
+    except SurveyFormatError:
+        raise
+    except Exception as exc:  # h5py: OSError, KeyError, RuntimeError on damaged files
+        raise SurveyFormatError(
+            path, "file", "a readable BAG (HDF5)", f"{_sniff(path)}: {_one_line(exc)}"
+        ) from exc
+    if elev.ndim != 2 or min(elev.shape) < 1:
         raise SurveyFormatError(path, "BAG_root/elevation", "a 2D array", elev.shape)
-    sw_x, sw_y, res_x, res_y, crs = _bag_metadata(path, xml)
+    try:
+        sw_x, sw_y, res_x, res_y, crs = _bag_metadata(path, xml)
+    except SurveyFormatError:
+        raise
+    except (ValueError, IndexError) as exc:
+        raise SurveyFormatError(
+            path,
+            "BAG_root/metadata",
+            "ISO XML with numeric corner points and resolution",
+            _one_line(exc),
+        ) from exc
+    if not (res_x > 0 and res_y > 0):
+        raise SurveyFormatError(
+            path, "metadata resolution", "positive row and column sizes", (res_y, res_x)
+        )
     elev[~np.isfinite(elev) | (np.abs(elev) >= 0.5 * BAG_NODATA)] = np.nan
     ny, nx = elev.shape
-    north_up = elev[::-1]  # BAG row 0 is the south row
+    north_up = _prepare_heights(elev[::-1].copy(), path, z_positive, spikes, info)  # row 0 south
     transform = from_origin(sw_x - res_x / 2, sw_y + (ny - 0.5) * res_y, res_x, res_y)
-    return _finish_raster(north_up, transform, crs, path, cell_size, target_crs, on_crs_mismatch)
+    return _finish_raster(
+        north_up, transform, crs, path, cell_size, target_crs, on_crs_mismatch, info
+    )
 
 
 # ----------------------------------------------------------------------------- points
@@ -446,11 +784,14 @@ def read_xyz(
     z_positive: str = "up",
     statistic: str = "mean",
     on_crs_mismatch: str = "reproject",
+    spikes: SpikeFilter | None = None,
+    info: dict | None = None,
 ) -> BathyGrid:
     """An ASCII point file (``x y z`` per line; whitespace, comma or semicolon separated; header
     lines and ``#`` comments skipped) gridded to ``cell_size``.
 
-    ``z_positive="down"`` reads depths (positive down) as heights ``-z``.
+    ``z_positive="down"`` reads depths (positive down) as heights ``-z``. Untagged no-data
+    points are dropped and ``spikes`` removed from the gridded cells (WARNINGs).
     """
     path = Path(path)
     if cell_size is None:
@@ -462,15 +803,28 @@ def read_xyz(
     delimiter = ";" if ";" in sample else ("," if "," in sample else None)
     skip = _numeric_header_lines(path, delimiter)
     try:
-        pts = np.loadtxt(
-            path, delimiter=delimiter, comments="#", skiprows=skip, usecols=(0, 1, 2), ndmin=2
-        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            pts = np.loadtxt(
+                path, delimiter=delimiter, comments="#", skiprows=skip, usecols=(0, 1, 2), ndmin=2
+            )
     except (ValueError, IndexError) as exc:
-        raise SurveyFormatError(path, "file", "numeric 'x y z' rows", exc) from exc
+        raise SurveyFormatError(
+            path, "file", "numeric 'x y z' rows", f"{_sniff(path)}: {_one_line(exc)}"
+        ) from exc
+    _untagged_nodata(pts[:, 2], path, info, what="points")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if pts.shape[0] == 0:
+        raise SurveyFormatError(path, "file", "numeric 'x y z' rows", f"none in {_sniff(path)}")
     if z_positive == "down":
         pts[:, 2] = -pts[:, 2]
+    if info is not None:
+        info["file_crs"] = _crs_string(source_crs) if source_crs is not None else None
+        info["file_bounds"] = [*pts[:, :2].min(0).tolist(), *pts[:, :2].max(0).tolist()]
     xy, crs = _points_crs(path, pts[:, :2], source_crs, target_crs, on_crs_mismatch)
-    return grid_points(np.column_stack([xy, pts[:, 2]]), cell_size, statistic, crs)
+    grid = grid_points(np.column_stack([xy, pts[:, 2]]), cell_size, statistic, crs)
+    _despike(grid.heights, path, spikes, info)
+    return grid
 
 
 # ----------------------------------------------------------------------------- meshes
@@ -482,9 +836,12 @@ def read_mesh(
     source_crs: Any = None,
     z_positive: str = "up",
     on_crs_mismatch: str = "reproject",
+    spikes: SpikeFilter | None = None,
+    info: dict | None = None,
 ) -> BathyGrid:
     """A triangle mesh (PLY/OBJ/STL/...) sampled on a grid by casting rays straight down at
-    the cell centres (the highest surface hit); NaN where a ray misses.
+    the cell centres (the highest surface hit); NaN where a ray misses; ``spikes`` removed
+    from the sampled cells.
 
     ``cell_size`` defaults to the median edge length. Rays are cast in coordinates centred on
     the mesh (float32 ray tracers lose millimetres at UTM magnitudes).
@@ -497,12 +854,24 @@ def read_mesh(
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
-        raise SurveyFormatError(path, "file", "a readable triangle mesh", exc) from exc
-    if len(mesh.faces) == 0:
-        raise SurveyFormatError(path, "faces", "a mesh with triangles", 0)
+        raise SurveyFormatError(
+            path, "file", "a readable triangle mesh", f"{_sniff(path)}: {_one_line(exc)}"
+        ) from exc
+    if len(getattr(mesh, "faces", ())) == 0:
+        raise SurveyFormatError(path, "faces", "a mesh with triangles", f"none in {_sniff(path)}")
     verts = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    if not np.isfinite(verts).all():
+        raise SurveyFormatError(
+            path,
+            "vertices",
+            "finite coordinates",
+            f"{int((~np.isfinite(verts)).any(1).sum())} vertices with NaN or infinite coordinates",
+        )
     if z_positive == "down":
         verts[:, 2] = -verts[:, 2]
+    if info is not None:
+        info["file_crs"] = _crs_string(source_crs) if source_crs is not None else None
+        info["file_bounds"] = [*verts[:, :2].min(0).tolist(), *verts[:, :2].max(0).tolist()]
     verts[:, :2], crs = _points_crs(path, verts[:, :2], source_crs, target_crs, on_crs_mismatch)
     if cell_size is None:
         edges = np.linalg.norm(
@@ -528,10 +897,9 @@ def read_mesh(
     locs, ray_idx, _ = local.ray.intersects_location(origins, dirs, multiple_hits=True)
     heights = np.full(origins.shape[0], -np.inf)
     np.maximum.at(heights, ray_idx, locs[:, 2])
-    heights = np.where(np.isfinite(heights), heights + centre[2], np.nan)
-    return BathyGrid(
-        heights.reshape(ny, nx), ix0 * cell_size, iy0 * cell_size, cell_size, _crs_string(crs)
-    )
+    heights = np.where(np.isfinite(heights), heights + centre[2], np.nan).reshape(ny, nx)
+    _despike(heights, path, spikes, info)
+    return BathyGrid(heights, ix0 * cell_size, iy0 * cell_size, cell_size, _crs_string(crs))
 
 
 # ----------------------------------------------------------------------------- dispatch
@@ -546,6 +914,8 @@ def read_grid(
     band: int = 1,
     z_positive: str = "up",
     statistic: str = "mean",
+    spikes: SpikeFilter | None = None,
+    info: dict | None = None,
 ) -> BathyGrid:
     """Read a bathymetry grid or mesh, dispatching on the file suffix.
 
@@ -560,8 +930,14 @@ def read_grid(
         source_crs: CRS of point/mesh coordinates (files without a CRS of their own).
         on_crs_mismatch: ``"reproject"`` or ``"error"`` (refuse a grid in another CRS).
         band: raster band (GeoTIFF).
-        z_positive: ``"up"`` heights or ``"down"`` depths (points, meshes).
+        z_positive: ``"up"`` heights or ``"down"`` depths (every format).
         statistic: ``"mean"`` or ``"median"`` height per cell (points).
+        spikes: remove isolated outliers (:class:`SpikeFilter`; rasters and BAGs at their
+            own resolution, before any reprojection); None: keep every cell.
+        info: a dict that receives what the file held and what was repaired:
+            ``file_crs`` (the file's own CRS, before reprojection), ``file_bounds``
+            (west, south, east, north in that CRS), ``untagged_nodata``,
+            ``spikes_removed``, ``spike_max_deviation_m``.
 
     Returns:
         :class:`BathyGrid`; in the survey's local frame when ``origin`` is given.
@@ -573,6 +949,8 @@ def read_grid(
         )
     if cell_size is not None and not cell_size > 0:
         raise ValueError(f"cell_size: expected None or a positive size (m), found {cell_size}")
+    if z_positive not in Z_POSITIVE:
+        raise ValueError(f"z_positive: expected 'up' or 'down', found {z_positive!r}")
     if origin is not None:
         ocrs = origin.get("crs")
         if target_crs is not None and ocrs is not None:
@@ -587,19 +965,22 @@ def read_grid(
     if not path.is_file():
         raise SurveyFormatError(path, "file", "an existing grid or mesh file", "missing file")
     suffix = path.suffix.lower()
+    common = {"z_positive": z_positive, "spikes": spikes, "info": info}
     if suffix in RASTER_SUFFIXES:
-        grid = read_raster(path, cell_size, target_crs, band=band, on_crs_mismatch=on_crs_mismatch)
+        grid = read_raster(
+            path, cell_size, target_crs, band=band, on_crs_mismatch=on_crs_mismatch, **common
+        )
     elif suffix in BAG_SUFFIXES:
-        grid = read_bag(path, cell_size, target_crs, on_crs_mismatch=on_crs_mismatch)
+        grid = read_bag(path, cell_size, target_crs, on_crs_mismatch=on_crs_mismatch, **common)
     elif suffix in XYZ_SUFFIXES:
         grid = read_xyz(
             path,
             cell_size,
             target_crs,
             source_crs=source_crs,
-            z_positive=z_positive,
             statistic=statistic,
             on_crs_mismatch=on_crs_mismatch,
+            **common,
         )
     elif suffix in MESH_SUFFIXES:
         grid = read_mesh(
@@ -607,8 +988,8 @@ def read_grid(
             cell_size,
             target_crs,
             source_crs=source_crs,
-            z_positive=z_positive,
             on_crs_mismatch=on_crs_mismatch,
+            **common,
         )
     else:
         raise SurveyFormatError(
@@ -618,40 +999,15 @@ def read_grid(
             suffix,
         )
     if not np.isfinite(grid.heights).any():
-        raise SurveyFormatError(path, "heights", "at least one valid cell", "all no-data")
+        raise SurveyFormatError(
+            path,
+            "heights",
+            "at least one valid cell",
+            f"all {grid.heights.size} cells no-data ({grid.shape[0]} x {grid.shape[1]})",
+        )
     if origin is not None:
         grid = shift_grid(grid, origin)
     return grid
-
-
-def spike_mask(heights: np.ndarray, threshold_m: float, window_cells: int = 5) -> np.ndarray:
-    """``(ny, nx)`` bool: valid cells more than ``threshold_m`` from the median of their
-    ``window_cells`` x ``window_cells`` neighbourhood (valid cells only; the grid's edge
-    and no-data do not count). Real grids carry such outliers (fliers, injected spikes).
-
-    >>> h = np.zeros((7, 7)); h[3, 3] = 5.0
-    >>> np.argwhere(spike_mask(h, 1.0)).tolist()
-    [[3, 3]]
-    """
-    h = np.asarray(heights, dtype=np.float64)
-    if h.ndim != 2:
-        raise ValueError(f"heights: expected a (ny, nx) grid, found shape {h.shape}")
-    if not threshold_m > 0:
-        raise ValueError(f"threshold_m: expected > 0, found {threshold_m}")
-    if window_cells < 3 or window_cells % 2 == 0:
-        raise ValueError(f"window_cells: expected an odd integer >= 3, found {window_cells}")
-    half = window_cells // 2
-    padded = np.pad(h, half, constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (window_cells, window_cells))
-    median = np.full(h.shape, np.nan)
-    rows = max(1, 2_000_000 // (h.shape[1] * window_cells**2))  # bounded memory per chunk
-    for r0 in range(0, h.shape[0], rows):
-        block = windows[r0 : r0 + rows].reshape(-1, h.shape[1], window_cells**2)
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: NaN median
-            median[r0 : r0 + rows] = np.nanmedian(block, axis=-1)
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(h) & (np.abs(h - median) > threshold_m)
 
 
 def footprint_coverage(grid: BathyGrid, lines: list) -> dict[str, float]:

@@ -29,6 +29,7 @@ from sss2bathy.io.grids import (
     CRS_MISMATCH,
     STATISTICS,
     Z_POSITIVE,
+    SpikeFilter,
     footprint_coverage,
     read_grid,
     shift_grid,
@@ -75,6 +76,9 @@ DEFAULTS: dict[str, Any] = {
     "mbes_z_positive": "up",
     "mbes_statistic": "mean",
     "mbes_crs_mismatch": "reproject",
+    "mbes_spike_threshold_m": 1.0,
+    "mbes_spike_window_cells": 5,
+    "mbes_spike_spread_factor": 5.0,
     "n_bins": 512,
     "tilt_deg": None,
     "beam_width_deg": None,
@@ -174,6 +178,11 @@ def validate_xtf_config(cfg: Mapping[str, Any]) -> None:
             require_bool(f"data.survey.{key}", cfg[key])
     if "channel_pair" in cfg:
         require_int("data.survey.channel_pair", cfg["channel_pair"], minimum=0)
+    window = cfg.get("mbes_spike_window_cells", 5)
+    if not is_integer(window) or window < 3 or window % 2 == 0:
+        raise ValueError(
+            f"data.survey.mbes_spike_window_cells: expected an odd integer >= 3, found {window!r}"
+        )
     unknown = sorted(set(cfg) - set(DEFAULTS))
     if unknown:
         log.warning("data.survey: ignoring keys unknown to the xtf source: %s", unknown)
@@ -195,6 +204,8 @@ _NUMBERS: tuple[tuple[str, Any, str], ...] = (
     ("frequency_hz", _positive, "a positive frequency (Hz)"),
     ("sound_speed_mps", _positive, "a positive speed (m/s)"),
     ("mbes_cell_size", _positive, "a positive number (m)"),
+    ("mbes_spike_threshold_m", _positive, "a positive height (m)"),
+    ("mbes_spike_spread_factor", _positive, "a positive factor"),
     ("max_jump_m", _positive, "a positive distance (m)"),
     ("max_speed_mps", _positive, "a positive speed (m/s)"),
     ("max_nav_gap_s", _positive, "a positive duration (s)"),
@@ -202,7 +213,13 @@ _NUMBERS: tuple[tuple[str, Any, str], ...] = (
     ("blanking_m", _non_negative, "a distance >= 0 (m)"),
     ("altitude_tolerance_m", _positive, "a positive distance (m)"),
 )
-_NULLABLE = (*SENSOR_KEYS, "mbes_cell_size", "altitude_tolerance_m")
+_NULLABLE = (
+    *SENSOR_KEYS,
+    "mbes_cell_size",
+    "altitude_tolerance_m",
+    "mbes_spike_threshold_m",
+    "mbes_spike_spread_factor",
+)
 _CHOICES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("mbes_z_positive", Z_POSITIVE),
     ("mbes_statistic", STATISTICS),
@@ -248,6 +265,90 @@ def _replace_folder(survey: Survey, folder: Path) -> None:
 def _grid_coverage(grid: BathyGrid, lines: list) -> float:
     xy = np.concatenate([ln.position[:, :2] for ln in lines])
     return float(np.isfinite(grid.sample(xy[:, 0], xy[:, 1])).mean())
+
+
+def _mbes_spike_filter(merged: Mapping[str, Any]) -> SpikeFilter | None:
+    """The MBES grid's spike filter (``data.survey.mbes_spike_*``; threshold null: none)."""
+    if merged["mbes_spike_threshold_m"] is None:
+        return None
+    spread = merged["mbes_spike_spread_factor"]
+    return SpikeFilter(
+        threshold_m=float(merged["mbes_spike_threshold_m"]),
+        window_cells=int(merged["mbes_spike_window_cells"]),
+        spread_factor=None if spread is None else float(spread),
+        key="data.survey.mbes_spike_threshold_m",
+    )
+
+
+def _check_grid_vertical(grid: BathyGrid, lines: list, path: Path, z_positive: str) -> None:
+    """Refuse a grid whose heights cannot be the seabed under the vehicle: all above the
+    datum (depths read as heights, or the other way round), or above the vehicle at most
+    pings over it."""
+    other = "down" if z_positive == "up" else "up"
+    hint = f"set data.survey.mbes_z_positive={other}"
+    h = grid.heights[np.isfinite(grid.heights)]
+    if h.size and h.min() > 0:
+        words = "heights" if z_positive == "up" else "depths"
+        raise SurveyFormatError(
+            path,
+            "heights",
+            f"seabed heights negative below the datum (data.survey.mbes_z_positive="
+            f"{z_positive} reads {words})",
+            f"all {h.size} valid cells above 0 m ({h.min():.2f} to {h.max():.2f} m): "
+            f"{'depths positive down' if z_positive == 'up' else 'heights positive up'}? "
+            f"{hint}",
+        )
+    pos = np.concatenate([ln.position for ln in lines])
+    under = grid.sample(pos[:, 0], pos[:, 1])
+    ok = np.isfinite(under) & np.isfinite(pos[:, 2])
+    if ok.sum() >= 10:
+        above = float((under[ok] > pos[ok, 2]).mean())
+        if above > 0.5:
+            raise SurveyFormatError(
+                path,
+                "heights",
+                "the seabed below the vehicle at the pings over the grid",
+                f"the grid above it at {100 * above:.0f}% of {int(ok.sum())} pings (grid median "
+                f"{np.median(under[ok]):.2f} m, vehicle median {np.median(pos[ok, 2]):.2f} m): "
+                f"depths read as heights ({hint}) or another vertical datum?",
+            )
+
+
+def _outside_grid_error(
+    grid: BathyGrid, lines: list, path: Path, origin: Mapping[str, Any], info: Mapping[str, Any]
+) -> SurveyFormatError:
+    """The error for a grid whose extent holds none of the lines' footprint: both CRSs, the
+    file, both extents, and whether the file's own numbers (no reprojection) would fit."""
+    lines_crs = origin.get("crs")
+    file_crs = info.get("file_crs")
+    e0, n0 = float(origin.get("easting", 0.0)), float(origin.get("northing", 0.0))
+    xy = np.concatenate([ln.position[:, :2] for ln in lines]) + [e0, n0]
+    lo, hi = xy.min(0), xy.max(0)
+    ny, nx = grid.shape
+    gw, gs = grid.x0 + e0 - grid.cell_size / 2, grid.y0 + n0 - grid.cell_size / 2
+    ge, gn = gw + nx * grid.cell_size, gs + ny * grid.cell_size
+    label = "no CRS (assumed the lines')" if file_crs is None else f"CRS {file_crs}"
+    moved = file_crs is not None and lines_crs is not None and file_crs != lines_crs
+    found = (
+        f"the grid ({label}{f', reprojected to {lines_crs}' if moved else ''}) spans "
+        f"E {gw:.0f}..{ge:.0f}, N {gs:.0f}..{gn:.0f}"
+    )
+    bounds = info.get("file_bounds")
+    if moved and bounds is not None:
+        west, south, east, north = bounds
+        if lo[0] <= east and hi[0] >= west and lo[1] <= north and hi[1] >= south:
+            found += (
+                f"; in the file's own coordinates (E {west:.0f}..{east:.0f}, N {south:.0f}.."
+                f"{north:.0f}) the lines fall inside it: is its CRS label {file_crs} wrong "
+                f"(the lines' is {lines_crs})?"
+            )
+    return SurveyFormatError(
+        path,
+        "extent",
+        f"a grid under the lines' footprint (lines in CRS {lines_crs}, E {lo[0]:.0f}..{hi[0]:.0f}"
+        f", N {lo[1]:.0f}..{hi[1]:.0f})",
+        found,
+    )
 
 
 def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool = False) -> Path:
@@ -347,12 +448,15 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
 
     grid = None
     if grid_path is not None:
+        grid_info: dict[str, Any] = {}
         grid_kwargs = {
             "cell_size": merged["mbes_cell_size"],
             "source_crs": merged["mbes_crs"],
             "on_crs_mismatch": merged["mbes_crs_mismatch"],
             "z_positive": merged["mbes_z_positive"],
             "statistic": merged["mbes_statistic"],
+            "spikes": _mbes_spike_filter(merged),
+            "info": grid_info,
         }
         if origin.get("crs") is None:
             grid = read_grid(grid_path, **grid_kwargs)
@@ -368,14 +472,9 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
         coverage = _grid_coverage(grid, lines)
         foot = footprint_coverage(grid, lines)
         if foot["inside"] == 0.0:
-            log.warning(
-                "survey '%s': the MBES grid's extent holds none of the lines' footprint "
-                "(origin or CRS mix-up? lines CRS %s, grid CRS %s)",
-                merged["name"],
-                origin.get("crs"),
-                grid.crs,
-            )
-        elif foot["holes"] > 0.5:
+            raise _outside_grid_error(grid, lines, grid_path, origin, grid_info)
+        _check_grid_vertical(grid, lines, grid_path, str(merged["mbes_z_positive"]))
+        if foot["holes"] > 0.5:
             log.warning(
                 "survey '%s': the lines overlap the MBES grid (%.0f%% of their footprint inside "
                 "its extent) but %.0f%% of that falls on empty (NaN) cells: holes in the grid",
@@ -388,6 +487,10 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
             "pings_over_grid": coverage,
             "footprint_inside_extent": foot["inside"],
             "footprint_on_nan_cells": foot["holes"],
+            "file_crs": grid_info.get("file_crs"),
+            "untagged_nodata_cells": grid_info.get("untagged_nodata", 0),
+            "spikes_removed": grid_info.get("spikes_removed", 0),
+            "spike_max_deviation_m": grid_info.get("spike_max_deviation_m", 0.0),
         }
 
     survey = Survey(
