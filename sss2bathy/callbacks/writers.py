@@ -222,6 +222,7 @@ class SirenMapExport(pl.Callback):
             pl_module.map_title(),
             origin=inputs.origin,
             altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
+            coverage=final.coverage,
         )
         if offsets is not None:
             names = list(getattr(trainer.datamodule, "line_names", None) or [])

@@ -71,7 +71,7 @@ from sss2bathy.data.cnn_normals import (
     latest_checkpoint,
     predict_normals,
 )
-from sss2bathy.data.holdout import AltimeterSplit, split_altimeter
+from sss2bathy.data.holdout import AltimeterSplit, split_altimeter, split_altimeter_fold
 from sss2bathy.data.masks import SonarMaskConfig, sonar_only_mask
 from sss2bathy.data.normalize import normalize_intensity
 from sss2bathy.data.sources import load_survey, survey_folder
@@ -351,19 +351,22 @@ def check_window(window: Mapping[str, Any] | None) -> dict[str, Any] | None:
 
 
 # ----------------------------------------------------------- held-out altimeter points
-HOLDOUT_KEYS = ("fraction", "block_pings", "seed")
+HOLDOUT_KEYS = ("fraction", "block_pings", "seed", "folds", "fold", "block_m")
 
 
 def holdout_config(holdout: Mapping[str, Any] | None, seed: int) -> dict[str, Any]:
     """The ``data.holdout`` settings checked and completed: ``fraction`` (0 = off),
-    ``block_pings`` and ``seed`` (``None`` = the datamodule's ``seed``)."""
+    ``block_pings`` and ``seed`` (``None`` = the datamodule's ``seed``); ``folds`` >= 2
+    switches to the K-fold split (:func:`sss2bathy.data.holdout.split_altimeter_fold`:
+    fold ``fold`` of blocks of ``block_m`` metres, null = its default length) in place of
+    ``fraction`` and ``block_pings``; 0 = off."""
     given = dict(holdout or {})
     unknown = sorted(set(given) - set(HOLDOUT_KEYS))
     if unknown:
         raise ValueError(
             f"data.holdout: expected keys among {list(HOLDOUT_KEYS)}, found unknown {unknown}"
         )
-    cfg = {"fraction": 0.0, "block_pings": 50, "seed": seed}
+    cfg = {"fraction": 0.0, "block_pings": 50, "seed": seed, "folds": 0, "fold": 0}
     cfg.update({k: v for k, v in given.items() if v is not None})
     try:
         fraction = float(cfg["fraction"])
@@ -377,7 +380,25 @@ def holdout_config(holdout: Mapping[str, Any] | None, seed: int) -> dict[str, An
         raise ValueError(
             f"data.holdout.block_pings: expected a positive integer, found {cfg['block_pings']!r}"
         )
-    return {"fraction": fraction, "block_pings": int(cfg["block_pings"]), "seed": int(cfg["seed"])}
+    folds, fold, block_m = cfg["folds"], cfg["fold"], cfg.get("block_m")
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
+        raise ValueError(
+            f"data.holdout.folds: expected 0 (off) or an integer >= 2, found {folds!r}"
+        )
+    if isinstance(fold, bool) or not isinstance(fold, int) or not 0 <= fold < max(folds, 1):
+        raise ValueError(
+            f"data.holdout.fold: expected an integer in [0, {max(folds, 1)}), found {fold!r}"
+        )
+    if block_m is not None:
+        require_number("data.holdout.block_m", block_m, lambda v: v > 0, "a positive length (m)")
+    return {
+        "fraction": fraction,
+        "block_pings": int(cfg["block_pings"]),
+        "seed": int(cfg["seed"]),
+        "folds": int(folds),
+        "fold": int(fold),
+        "block_m": None if block_m is None else float(block_m),
+    }
 
 
 class PingAltimeterDataModule(pl.LightningDataModule):
@@ -504,6 +525,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.z_range: tuple[float, float] | None = None
         self.track_xy: np.ndarray | None = None
         self.swath_half_width_m: float | None = None
+        self.ping_altitude_m: np.ndarray | None = None  # (N,) the table's pings' altitudes
 
     # --------------------------------------------------------------- set-up
     def prepare_data(self) -> None:
@@ -560,6 +582,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
             )
         self.track_xy = table.position[:, :2].numpy().astype(np.float64)
         altitude = np.concatenate([ln.altitude_m for ln in lines])
+        self.ping_altitude_m = altitude.astype(np.float64)
         altitude = float(np.nanmedian(altitude)) if np.isfinite(altitude).any() else 0.0
         r_max = float(table.range_m.max())
         self.swath_half_width_m = math.sqrt(max(r_max**2 - altitude**2, 0.0)) or r_max
@@ -582,6 +605,8 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         """``(M, 3)`` altimeter points of ``altimeter_split`` the fit uses; with a holdout,
         the others go to :attr:`holdout_split` (:func:`sss2bathy.data.holdout.split_altimeter`)."""
         lines = survey.split_lines(self.altimeter_split)
+        if self.holdout["folds"] >= 2:
+            return self._fold_altimeter(lines)
         if self.holdout["fraction"] == 0.0:
             self.holdout_split = None
             return survey.altimeter(self.altimeter_split).xyz
@@ -614,6 +639,31 @@ class PingAltimeterDataModule(pl.LightningDataModule):
                 self.holdout["block_pings"],
                 split.interp_mae,
             )
+        return split.fit
+
+    def _fold_altimeter(self, lines: Sequence[Any]) -> np.ndarray:
+        """Fold ``holdout.fold`` of the K-fold split held out (:func:`split_altimeter_fold`;
+        the default block length from the swath width of the longest slant range)."""
+        altitude = np.concatenate([ln.altitude_m for ln in lines])
+        h = float(np.nanmedian(altitude)) if np.isfinite(altitude).any() else 0.0
+        r_max = float(max(np.max(ln.range_m) for ln in lines))
+        split = split_altimeter_fold(
+            [ln.position for ln in lines],
+            [ln.altitude_m for ln in lines],
+            self.holdout["folds"],
+            self.holdout["fold"],
+            self.holdout["block_m"],
+            self.holdout["seed"],
+            swath_width_m=2.0 * (math.sqrt(max(r_max**2 - h**2, 0.0)) or r_max),
+        )
+        self.holdout_split = split
+        log.info(
+            "data.holdout: fold %d of %d: %d of %d altimeter points held out (%d blocks of "
+            "%.1f m, %.0f pings on average); along-track interpolation of the rest scores "
+            "%.3f m MAE on them",
+            split.fold, split.folds, split.n_held, split.n_held + split.fit.shape[0],
+            split.n_blocks, split.block_m, split.block_pings or 0.0, split.interp_mae,
+        )  # fmt: skip
         return split.fit
 
     def _z_range(self, z: np.ndarray) -> tuple[float, float]:

@@ -9,8 +9,12 @@
 * :func:`gradient_hsv` — the paper's gradient picture: hue = direction
   ``arctan2(dz/dx, dz/dy)`` (the paper's ``arctan(dx/dy)`` over the full circle),
   saturation 1, value = gradient norm (scaled by ``vmax``).
-* :func:`coverage_mask` — the cells a measurement constrains (the track region plus the
-  cells holding an altimeter point); ``map.tif`` is no-data elsewhere.
+* :func:`swath_footprint_mask` — the cells the sonar's used bins imaged (per ping and
+  side, the flat-seabed ground between the first and the last usable bin: no nadir gap,
+  nothing before or after the line); with the altimeter cells it is what a fit's
+  ``map.tif`` holds data in (:func:`coverage_stats`: imaged area, extrapolated share).
+* :func:`coverage_mask` — the older, wider coverage: the track region plus the cells
+  holding an altimeter point, grown by a cell (``map.tif``'s when no footprint is given).
 * :func:`render_map`, :func:`save_map_outputs` — PNGs and the files of a finished fit. With
   the survey origin the GeoTIFF is in true projected coordinates and the survey's CRS
   (:func:`sss2bathy.io.export.write_geotiff`) and the PNG axes are easting/northing; without
@@ -34,19 +38,34 @@ from sss2bathy.utils.atomic import atomic_path, atomic_write_text, save_figure
 
 
 def grid_over_bounds(
-    bounds: Sequence[float], cell_size: float, crs: str | None = None
+    bounds: Sequence[float],
+    cell_size: float,
+    crs: str | None = None,
+    origin: Mapping[str, Any] | None = None,
 ) -> BathyGrid:
-    """An all-NaN grid covering ``(xmin, ymin, xmax, ymax)`` (m) with ``cell_size`` cells
-    (for surveys without an MBES grid)."""
+    """An all-NaN grid whose cell centres cover ``(xmin, ymin, xmax, ymax)`` (m, local
+    frame) with ``cell_size`` cells (for surveys without an MBES grid).
+
+    Its cell edges fall on multiples of ``cell_size`` in true projected coordinates (local
+    plus the survey ``origin``'s easting / northing; without ``origin``, in the coordinates
+    given: the same for an XTF import, whose origin is a multiple of 100 m), so the
+    GeoTIFF's corner is a round number and maps of one area line up cell for cell."""
     xmin, ymin, xmax, ymax = (float(b) for b in bounds)
     if not (cell_size > 0 and xmax > xmin and ymax > ymin):
         raise ValueError(
             f"bounds, cell_size: expected xmin < xmax, ymin < ymax and a positive cell, "
             f"found {tuple(bounds)}, {cell_size}"
         )
-    nx = max(2, int(math.ceil((xmax - xmin) / cell_size)) + 1)
-    ny = max(2, int(math.ceil((ymax - ymin) / cell_size)) + 1)
-    return BathyGrid(np.full((ny, nx), np.nan, np.float32), xmin, ymin, cell_size, crs)
+    shift = [float((origin or {}).get(k) or 0.0) for k in ("easting", "northing")]
+    # the first centre: the cell centre (an odd multiple of half a cell, in true
+    # coordinates) at or below the bound
+    x0, y0 = (
+        (math.floor((lo + off) / cell_size - 0.5 + 1e-9) + 0.5) * cell_size - off
+        for lo, off in ((xmin, shift[0]), (ymin, shift[1]))
+    )
+    nx = max(2, int(math.ceil((xmax - x0) / cell_size - 1e-9)) + 1)
+    ny = max(2, int(math.ceil((ymax - y0) / cell_size - 1e-9)) + 1)
+    return BathyGrid(np.full((ny, nx), np.nan, np.float32), x0, y0, cell_size, crs)
 
 
 @torch.no_grad()
@@ -127,6 +146,186 @@ def coverage_mask(
 
         covered = binary_dilation(covered, np.ones((3, 3), bool), iterations=int(margin_cells))
     return covered
+
+
+def swath_footprint_mask(
+    grid: BathyGrid,
+    position: np.ndarray,
+    rotation: np.ndarray,
+    altitude_m: np.ndarray,
+    range_m: np.ndarray,
+    usable: np.ndarray,
+    line: np.ndarray | None = None,
+    max_step_m: float | None = None,
+) -> np.ndarray:
+    """``(ny, nx)`` bool: cells whose centre the sonar's used bins imaged (flat seabed).
+
+    Per ping and side, the ground between the first and the last usable bin: slant range
+    ``r`` lies ``sqrt(r^2 - h^2)`` across track on a flat seabed ``h = altitude`` below
+    the sonar, along the horizontal part of the side's across-track axis ``sigma R e_y``
+    (sigma = +1 port, -1 starboard; docs/architecture.md). The water column, the nadir
+    gap and the ranges beyond the last usable bin are outside. Consecutive pings of one
+    line (``line``) are joined by the quadrilateral between their near and far ground
+    points (two triangles, cells whose centre lies inside or on an edge), so the strips
+    leave no holes; each ping's own near-far segment is drawn too (sampled every half
+    cell), so a lone ping still counts. Two pings more than ``max_step_m`` apart (default
+    ``max(4 x the line's median non-zero step, 2 cells)``: a gap in the navigation) are
+    not joined.
+
+    Args:
+        grid: the map grid.
+        position: ``(P, 3)`` sonar positions (m), pings of a line in order.
+        rotation: ``(P, 3, 3)`` vehicle -> world rotations.
+        altitude_m: ``(P,)`` altitude above the seabed (m), NaN = none (the ping images
+            nothing).
+        range_m: ``(B,)`` slant range of each bin (m).
+        usable: ``(P, 2, B)`` bool, the bins the fit uses (e.g. ``mask == 0``).
+        line: ``(P,)`` line index of each ping (None: one line).
+        max_step_m: see above.
+    """
+    pos = np.asarray(position, np.float64)
+    rot = np.asarray(rotation, np.float64)
+    alt = np.asarray(altitude_m, np.float64)
+    rng = np.asarray(range_m, np.float64)
+    use = np.asarray(usable, bool)
+    n = pos.shape[0] if pos.ndim == 2 else -1
+    if pos.shape != (n, 3) or rot.shape != (n, 3, 3) or alt.shape != (n,):
+        raise ValueError(
+            f"position, rotation, altitude_m: expected (P, 3), (P, 3, 3), (P,), found "
+            f"{pos.shape}, {rot.shape}, {alt.shape}"
+        )
+    if rng.ndim != 1 or use.shape != (n, 2, rng.shape[0]):
+        raise ValueError(
+            f"usable: expected shape ({n}, 2, {rng.shape[0] if rng.ndim == 1 else '?'}), "
+            f"found {use.shape}"
+        )
+    line = np.zeros(n, np.int64) if line is None else np.asarray(line).astype(np.int64)
+    if line.shape != (n,):
+        raise ValueError(f"line: expected shape ({n},), found {line.shape}")
+    out = np.zeros(grid.shape, bool)
+    if n == 0:
+        return out
+    use = use & np.isfinite(alt)[:, None, None]
+    has = use.any(-1)  # (P, 2)
+    first = np.argmax(use, -1)
+    last = rng.shape[0] - 1 - np.argmax(use[..., ::-1], -1)
+    h2 = np.where(np.isfinite(alt), alt, 0.0)[:, None] ** 2
+    ground = lambda r: np.sqrt(np.maximum(r**2 - h2, 0.0))  # noqa: E731
+    near, far = ground(rng[first]), ground(rng[last])  # (P, 2)
+    across = rot[:, :2, 1]  # the vehicle's port axis, horizontal part
+    norm = np.linalg.norm(across, axis=1, keepdims=True)
+    across = np.divide(across, norm, out=np.zeros_like(across), where=norm > 1e-9)
+    sigma = np.array([1.0, -1.0])
+    direction = sigma[None, :, None] * across[:, None, :]  # (P, 2, 2)
+    xy = pos[:, None, :2]
+    p_near, p_far = xy + near[..., None] * direction, xy + far[..., None] * direction
+    step = np.hypot(*np.diff(pos[:, :2], axis=0).T)
+    joined = line[1:] == line[:-1]
+    if max_step_m is None:
+        limit = np.full(n - 1, 2.0 * grid.cell_size)
+        for ln in np.unique(line):
+            idx = np.flatnonzero((line[:-1] == ln) & joined)
+            moving = step[idx][step[idx] > 1e-6]
+            if moving.size:
+                limit[idx] = max(4.0 * float(np.median(moving)), 2.0 * grid.cell_size)
+    else:
+        limit = np.full(n - 1, float(max_step_m))
+    joined &= step <= limit
+    tris = []
+    for side in (0, 1):
+        pair = joined & has[:-1, side] & has[1:, side]
+        a0, a1 = p_near[:-1, side][pair], p_far[:-1, side][pair]
+        b0, b1 = p_near[1:, side][pair], p_far[1:, side][pair]
+        tris += [np.stack([a0, a1, b1], 1), np.stack([a0, b1, b0], 1)]
+    _fill_triangles(out, grid, np.concatenate(tris) if tris else np.zeros((0, 3, 2)))
+    # every ping's own near-far segment, sampled every half cell
+    seg_near, seg_far = p_near[has], p_far[has]
+    length = np.linalg.norm(seg_far - seg_near, axis=1)
+    steps = np.ceil(length / (0.5 * grid.cell_size)).astype(np.int64) + 1
+    if steps.size:
+        which = np.repeat(np.arange(steps.size), steps)
+        t = (np.arange(which.size) - np.repeat(np.cumsum(steps) - steps, steps)) / np.maximum(
+            np.repeat(steps, steps) - 1, 1
+        )
+        pts = seg_near[which] + t[:, None] * (seg_far[which] - seg_near[which])
+        out |= altimeter_cells(grid, pts)
+    return out
+
+
+def _fill_triangles(out: np.ndarray, grid: BathyGrid, tri: np.ndarray) -> None:
+    """Set the cells of ``out`` whose centre lies in (or on an edge of) one of the
+    triangles ``tri (T, 3, 2)`` (world m); degenerate triangles are skipped."""
+    if tri.shape[0] == 0:
+        return
+    c = grid.cell_size
+    # triangle vertices in cell units (cell centres at integers)
+    v = np.stack([(tri[..., 0] - grid.x0) / c, (tri[..., 1] - grid.y0) / c], -1)
+    e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    v = v[np.abs(area) > 1e-9]
+    if not v.shape[0]:
+        return
+    ny, nx = grid.shape
+    lo = np.clip(np.ceil(v.min(1) - 1e-9), 0, [nx, ny]).astype(np.int64)
+    hi = np.clip(np.floor(v.max(1) + 1e-9), -1, [nx - 1, ny - 1]).astype(np.int64)
+    size = np.maximum(hi - lo + 1, 0)
+    keep = (size > 0).all(1)
+    v, lo, size = v[keep], lo[keep], size[keep]
+    order = np.argsort(size[:, 0] * size[:, 1])
+    v, lo, size = v[order], lo[order], size[order]
+    start = 0
+    while start < v.shape[0]:  # chunks of triangles with bounding boxes of similar size
+        w, h = size[start]
+        stop = start + 1
+        while stop < v.shape[0]:
+            nw, nh = max(w, size[stop, 0]), max(h, size[stop, 1])
+            if (stop - start + 1) * nw * nh > 2_000_000:
+                break
+            w, h, stop = nw, nh, stop + 1
+        ox, oy = np.meshgrid(np.arange(w), np.arange(h))
+        px = lo[start:stop, 0, None] + ox.ravel()[None]  # (T, w*h)
+        py = lo[start:stop, 1, None] + oy.ravel()[None]
+        tv = v[start:stop]
+        sides = []
+        for i in range(3):
+            a, b = tv[:, i], tv[:, (i + 1) % 3]
+            sides.append(
+                (b[:, 0, None] - a[:, 0, None]) * (py - a[:, 1, None])
+                - (b[:, 1, None] - a[:, 1, None]) * (px - a[:, 0, None])
+            )
+        d = np.stack(sides)
+        eps = 1e-9
+        inside = ((d >= -eps).all(0) | (d <= eps).all(0)) & (px < nx) & (py < ny)
+        out[py[inside], px[inside]] = True
+        start = stop
+
+
+def coverage_stats(
+    grid: BathyGrid, written: np.ndarray, imaged: np.ndarray, altimeter: np.ndarray | None = None
+) -> dict[str, float]:
+    """Coverage of a written map: ``imaged_area_m2`` (the sonar footprint,
+    :func:`swath_footprint_mask`), ``measured_area_m2`` (footprint plus altimeter cells),
+    ``written_area_m2`` (the map's cells with data) and ``extrapolated_share`` (the share of
+    those that no measurement constrains: neither imaged nor holding an altimeter point).
+
+    Args:
+        grid: the map grid.
+        written, imaged: ``(ny, nx)`` bool, the map's cells with data and the footprint.
+        altimeter: ``(ny, nx)`` bool cells holding an altimeter point (:func:`altimeter_cells`).
+    """
+    written, imaged = np.asarray(written, bool), np.asarray(imaged, bool)
+    for name, arr in (("written", written), ("imaged", imaged)):
+        if arr.shape != grid.shape:
+            raise ValueError(f"{name}: expected the grid's shape {grid.shape}, found {arr.shape}")
+    measured = imaged | (np.zeros_like(imaged) if altimeter is None else np.asarray(altimeter))
+    cell_area = float(grid.cell_size) ** 2
+    n_written = int(written.sum())
+    return {
+        "imaged_area_m2": float(imaged.sum()) * cell_area,
+        "measured_area_m2": float(measured.sum()) * cell_area,
+        "written_area_m2": float(n_written) * cell_area,
+        "extrapolated_share": float((written & ~measured).sum()) / n_written if n_written else 0.0,
+    }
 
 
 def map_metrics(
@@ -498,6 +697,7 @@ def save_map_outputs(
     title: str = "SIREN",
     origin: Mapping[str, Any] | None = None,
     altimeter_xy: np.ndarray | None = None,
+    coverage: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Write a finished map: ``map.tif`` (GeoTIFF), ``map.npz``, ``metrics.json`` and PNGs
     (``map.png``, ``gradient_hsv.png``, with an MBES grid also ``error.png``,
@@ -511,16 +711,28 @@ def save_map_outputs(
             (none when the survey has none), PNG axes in easting/northing. Without it the
             GeoTIFF is in local coordinates **without a CRS** (a WARNING says so).
         altimeter_xy: ``(N, 2)`` altimeter points used: their cells count as covered.
+        coverage: ``(ny, nx)`` bool, the cells the written map holds data in: what the
+            measurements constrain (the sonar's footprint, :func:`swath_footprint_mask`,
+            plus the altimeter cells). None: :func:`coverage_mask` of ``region`` and
+            ``altimeter_xy`` (when ``region`` is given), else every cell.
 
-    ``map.tif`` is no-data outside :func:`coverage_mask` (when ``region`` is given);
-    ``map.npz`` keeps every cell and the region.
+    ``map.tif`` and ``map.png`` (and ``gradient_hsv.png``) are no-data outside the coverage;
+    ``map.npz`` keeps every cell, the region and the coverage. ``error.png`` shows the
+    scored ``region``.
     """
     from sss2bathy.io.export import write_geotiff
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"map_tif": out / "map.tif", "map_npz": out / "map.npz"}
-    covered = coverage_mask(pred, region, altimeter_xy) if region is not None else None
+    if coverage is not None:
+        covered = np.asarray(coverage, bool)
+        if covered.shape != pred.shape:
+            raise ValueError(
+                f"coverage: expected the map's shape {pred.shape}, found {covered.shape}"
+            )
+    else:
+        covered = coverage_mask(pred, region, altimeter_xy) if region is not None else None
     if origin is None:  # local coordinates: a CRS label would put the map in the wrong place
         local = BathyGrid(pred.heights, pred.x0, pred.y0, pred.cell_size)
         write_geotiff(local, paths["map_tif"], mask=covered)
@@ -534,11 +746,13 @@ def save_map_outputs(
     }
     if region is not None:
         arrays["region"] = region
+    if covered is not None:
+        arrays["coverage"] = covered
     with atomic_path(paths["map_npz"]) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
     shown = BathyGrid(
-        np.where(region, pred.heights, np.nan) if region is not None else pred.heights,
+        np.where(covered, pred.heights, np.nan) if covered is not None else pred.heights,
         pred.x0,
         pred.y0,
         pred.cell_size,

@@ -34,6 +34,7 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
 import pytorch_lightning as pl
 import torch
 from pytorch_lightning.callbacks import Callback
@@ -55,6 +56,7 @@ from sss2bathy.modules.siren_parts import (
     describe_fit,
     finite_metrics,
     param_groups,
+    swath_inputs,
 )
 from sss2bathy.utils.checks import require_number
 
@@ -190,9 +192,17 @@ class SirenModule(pl.LightningModule):
         self.theta_limits = inputs.sensor.beam_limits_rad
         self.theta_cache = torch.full((inputs.n_pings, 2, inputs.n_bins), torch.nan)
         radius = self.region_radius_m or inputs.swath_half_width_m
-        self.scorer = MapScorer.for_survey(
-            inputs.bounds, inputs.grid, inputs.track_xy, radius, self.eval_cell_m, inputs.holdout
+        # the written map's coverage: the bins the fit uses (none for heights only) and the
+        # fitted altimeter points; the MBES scores keep the track region (``radius``)
+        swath = swath_inputs(
+            getattr(self.trainer, "datamodule", None), uses_sidescan=self.sensor is not None
         )
+        alt = inputs.altimeter
+        self.scorer = MapScorer.for_survey(
+            inputs.bounds, inputs.grid, inputs.track_xy, radius, self.eval_cell_m,
+            inputs.holdout, swath=swath,
+            altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy().astype(np.float64),
+        )  # fmt: skip
         if isinstance(self.sensor, MBESCellFit):
             grid = inputs.grid
             self.sensor.set_cells_from_grid(
@@ -327,7 +337,7 @@ class SirenModule(pl.LightningModule):
         self.final_metrics["final/map_epoch"] = float(map_epoch)
         self.latest_evaluation = MapEvaluation(
             evaluation.pred, evaluation.metrics, int(self.current_epoch),
-            evaluation.truth, evaluation.region, map_epoch,
+            evaluation.truth, evaluation.region, map_epoch, evaluation.coverage,
         )  # fmt: skip
         return self.latest_evaluation
 

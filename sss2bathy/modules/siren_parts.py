@@ -2,18 +2,27 @@
 choice, the optimiser's parameter groups and the hparams description.
 
 * :class:`MapScorer` fixes, once the survey is known, the evaluation grid (the MBES grid,
-  or ``eval_cell_m`` cells over the bounds), the *surveyed area* (cells within the swath
-  half-width of a sonar position of the lines used) and the held-out altimeter points; its
-  :meth:`~MapScorer.evaluate` returns a :class:`MapEvaluation`.
+  or ``eval_cell_m`` cells over the bounds), the *surveyed area* scored against the MBES
+  (cells within the swath half-width of a sonar position of the lines used: the published
+  tables' region), the *coverage* of the written map (the cells the used bins imaged,
+  :func:`~sss2bathy.eval.maps.swath_footprint_mask`, plus the fitted altimeter points'
+  cells) and the held-out altimeter points; its :meth:`~MapScorer.evaluate` returns a
+  :class:`MapEvaluation`.
 * :class:`BestSnapshot` keeps a copy of the SIREN at the evaluation with the lowest
   ``select_best`` metric, for the final map.
 * :func:`param_groups`: the SIREN's, its input encoding's and the sensor model's
   parameters with their learning rates; :func:`describe_fit`: flat hparams.
 
 Metrics: ``mae``, ``std``, ``grad_cs``, ``n_cells`` against the MBES grid
-(:func:`sss2bathy.eval.maps.map_metrics`) and, with held-out altimeter points,
-``holdout_alt_mae``, ``holdout_interp_mae``, ``holdout_ratio``, ``holdout_n``
-(:mod:`sss2bathy.data.holdout`).
+(:func:`sss2bathy.eval.maps.map_metrics`); with held-out altimeter points,
+``holdout_alt_mae``, ``holdout_interp_mae``, ``holdout_ratio``, ``holdout_n`` and the
+split's ``holdout_blocks``, ``holdout_block_pings`` (mean pings per block) and, for a
+K-fold split, ``holdout_block_m``, ``holdout_folds``, ``holdout_fold``
+(:mod:`sss2bathy.data.holdout`); with the sonar's footprint,
+:func:`~sss2bathy.eval.maps.coverage_stats` of the written map (``imaged_area_m2``,
+``measured_area_m2``, ``written_area_m2``, ``extrapolated_share``) and
+``track_region_extrapolated_share`` (the share of the older track-region coverage,
+:func:`~sss2bathy.eval.maps.coverage_mask`, that nothing measured).
 """
 
 from __future__ import annotations
@@ -28,7 +37,16 @@ import numpy as np
 import torch
 
 from sss2bathy.data.holdout import AltimeterSplit, holdout_mae
-from sss2bathy.eval.maps import grid_over_bounds, map_metrics, siren_to_grid, track_region_mask
+from sss2bathy.eval.maps import (
+    altimeter_cells,
+    coverage_mask,
+    coverage_stats,
+    grid_over_bounds,
+    map_metrics,
+    siren_to_grid,
+    swath_footprint_mask,
+    track_region_mask,
+)
 from sss2bathy.metrics.bathy import MAP_TAGS
 from sss2bathy.survey import BathyGrid
 
@@ -48,6 +66,8 @@ class MapEvaluation:
         region: ``(ny, nx)`` bool, the scored area.
         map_epoch: the epoch of the SIREN the map shows (the final map with ``select_best``
             may show an earlier one).
+        coverage: ``(ny, nx)`` bool, the cells the written map holds data in (None: the
+            export's :func:`~sss2bathy.eval.maps.coverage_mask`).
     """
 
     pred: BathyGrid
@@ -56,6 +76,7 @@ class MapEvaluation:
     truth: BathyGrid | None
     region: np.ndarray | None
     map_epoch: int | None = None
+    coverage: np.ndarray | None = None
 
     def tags(self, prefix: str = "val/") -> dict[str, float]:
         """The metrics under their logged names (:data:`MAP_TAGS`), e.g. ``val/map_mae_m``."""
@@ -71,6 +92,9 @@ class MapScorer:
     region: np.ndarray
     holdout_points: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     holdout_interp_mae: float | None = None
+    holdout_info: dict[str, float] = field(default_factory=dict)
+    coverage: np.ndarray | None = None
+    coverage_metrics: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def for_survey(
@@ -81,12 +105,39 @@ class MapScorer:
         radius_m: float,
         eval_cell_m: float,
         holdout: AltimeterSplit | None = None,
+        swath: Mapping[str, np.ndarray] | None = None,
+        altimeter_xy: np.ndarray | None = None,
     ) -> MapScorer:
+        """Args (besides the fields): ``swath``, the :func:`swath_footprint_mask` arguments
+        of the pings used (:func:`swath_inputs`; None: no footprint, the export's older
+        coverage); ``altimeter_xy`` ``(M, 2)``, the fitted altimeter points."""
         like = grid if grid is not None else grid_over_bounds(bounds, eval_cell_m)
         scorer = cls(like, grid, track_region_mask(like, track_xy, radius_m))
         if holdout is not None and holdout.n_held > 0:
             scorer.holdout_points = torch.from_numpy(np.asarray(holdout.held, np.float32))
             scorer.holdout_interp_mae = float(holdout.interp_mae)
+            info = {
+                "holdout_blocks": holdout.n_blocks,
+                "holdout_block_pings": holdout.block_pings,
+                "holdout_block_m": holdout.block_m,
+                "holdout_folds": holdout.folds or None,
+                "holdout_fold": holdout.fold,
+            }
+            scorer.holdout_info = {k: float(v) for k, v in info.items() if v is not None}
+        if swath is not None:
+            imaged = swath_footprint_mask(like, **swath)
+            alt = (
+                altimeter_cells(like, altimeter_xy)
+                if altimeter_xy is not None
+                else np.zeros(like.shape, bool)
+            )
+            scorer.coverage = imaged | alt
+            stats = coverage_stats(like, scorer.coverage, imaged, alt)
+            old = coverage_mask(like, scorer.region, altimeter_xy)
+            stats["track_region_extrapolated_share"] = coverage_stats(like, old, imaged, alt)[
+                "extrapolated_share"
+            ]
+            scorer.coverage_metrics = stats
         return scorer
 
     def holdout_metrics(self, siren: torch.nn.Module) -> dict[str, float]:
@@ -107,6 +158,7 @@ class MapScorer:
             "holdout_interp_mae": interp,
             "holdout_ratio": alt_mae / interp if interp > 0 else float("nan"),
             "holdout_n": int(pts.shape[0]),
+            **self.holdout_info,
         }
 
     def evaluate(self, siren: torch.nn.Module, epoch: int) -> MapEvaluation:
@@ -114,7 +166,30 @@ class MapScorer:
         pred = siren_to_grid(siren, self.like)
         metrics = map_metrics(pred, self.truth, self.region) if self.truth else {}
         metrics.update(self.holdout_metrics(siren))
-        return MapEvaluation(pred, metrics, int(epoch), self.truth, self.region)
+        metrics.update(self.coverage_metrics)
+        return MapEvaluation(
+            pred, metrics, int(epoch), self.truth, self.region, coverage=self.coverage
+        )
+
+
+def swath_inputs(datamodule: Any, uses_sidescan: bool = True) -> dict[str, np.ndarray] | None:
+    """The :func:`~sss2bathy.eval.maps.swath_footprint_mask` arguments of a set-up
+    ``PingAltimeterDataModule``'s ping table (its valid bins, ``mask == 0``, and the pings'
+    altitudes ``ping_altitude_m``); ``uses_sidescan=False`` (a heights-only fit): no bin is
+    used, the footprint is empty. None when the datamodule lacks them."""
+    table = getattr(datamodule, "table", None)
+    altitude = getattr(datamodule, "ping_altitude_m", None)
+    if table is None or altitude is None or len(altitude) != table.n_pings:
+        return None
+    mask = table.mask.cpu().numpy()
+    return {
+        "position": table.position.cpu().numpy(),
+        "rotation": table.rotation.cpu().numpy(),
+        "altitude_m": np.asarray(altitude, np.float64),
+        "range_m": table.range_m.cpu().numpy(),
+        "usable": (mask == 0) if uses_sidescan else np.zeros(mask.shape, bool),
+        "line": table.line.cpu().numpy(),
+    }
 
 
 def finite_metrics(metrics: Mapping[str, Any], prefix: str = "final/") -> dict[str, float]:
@@ -219,4 +294,5 @@ __all__ = [
     "describe_fit",
     "finite_metrics",
     "param_groups",
+    "swath_inputs",
 ]

@@ -149,7 +149,14 @@ def test_datamodule_fits_on_the_kept_points_and_keeps_all_pings(tmp_path):
     dm.setup("fit")
     assert full.holdout_split is None
     split = dm.holdout_split
-    assert dm.holdout == {"fraction": 0.25, "block_pings": 10, "seed": 4}  # seed = data.seed
+    assert dm.holdout == {  # seed = data.seed; the K-fold split off
+        "fraction": 0.25,
+        "block_pings": 10,
+        "seed": 4,
+        "folds": 0,
+        "fold": 0,
+        "block_m": None,
+    }
     # 8 blocks of 10 pings, 2 held out (19 points if one holds the missing reading)
     assert split is not None and split.n_held in (19, 20)
     assert dm.table.n_pings == full.table.n_pings  # all the sidescan is still used
