@@ -109,7 +109,8 @@ def test_gradient_hsv_colours():
 def test_siren_to_grid_is_aligned_with_the_grid():
     torch.manual_seed(0)
     like = grid_over_bounds((10.0, 20.0, 30.0, 35.0), 1.0, crs="EPSG:32633")
-    assert like.shape == (16, 21) and like.bounds == (10.0, 20.0, 30.0, 35.0)
+    # cell edges on whole metres: centres from 9.5 (at or below 10) to 30.5 (at or above 30)
+    assert like.shape == (17, 22) and like.bounds == (9.5, 19.5, 30.5, 35.5)
     siren = Siren(hidden=16, n_layers=3, bounds=(0, 0, 50, 50), z_range=(-20, -10))
     grid = siren_to_grid(siren, like, chunk=50)
     assert grid.crs == "EPSG:32633" and grid.shape == like.shape
@@ -121,7 +122,7 @@ def test_siren_to_grid_is_aligned_with_the_grid():
 
 
 def test_track_region_mask_selects_cells_near_tracks():
-    grid = grid_over_bounds((0.0, 0.0, 10.0, 10.0), 1.0)
+    grid = BathyGrid(np.full((11, 11), np.nan), 0.0, 0.0, 1.0)  # centres 0 .. 10
     track = np.array([[5.0, y] for y in np.linspace(0, 10, 41)])
     region = track_region_mask(grid, track, 2.0)
     assert region[:, 3:8].all() and not region[:, :3].any() and not region[:, 8:].any()
