@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 
-__all__ = ["BottomPicks", "detect_first_return"]
+__all__ = ["BottomPicks", "calibrate_to_altimeter", "detect_first_return", "detector_accuracy"]
 
 
 @dataclass(frozen=True)
@@ -351,3 +351,28 @@ def calibrate_to_altimeter(
     keep = ~(out > 0) & np.isfinite(fr)
     out[keep], offset[keep] = fr[keep], 0.0
     return out, offset
+
+
+def detector_accuracy(
+    first_return_m: np.ndarray, altimeter_m: np.ndarray, every: int = 5, n_ref: int = 20
+) -> tuple[float, float, int] | None:
+    """How well :func:`calibrate_to_altimeter` replaces the altimeter: cross-validated.
+
+    Every ``every``-th ping having both values is hidden from the calibration and its
+    calibrated first return compared with its altimeter value.
+
+    Returns:
+        ``(median |error|, max |error|, pings compared)`` (m), or None with fewer than 10
+        pings having both.
+    """
+    fr = np.asarray(first_return_m, dtype=np.float64)
+    alt = np.asarray(altimeter_m, dtype=np.float64)
+    ref = np.flatnonzero(np.isfinite(fr) & np.isfinite(alt))
+    if ref.size < 10:
+        return None
+    held = ref[:: max(int(every), 2)]
+    hidden = alt.copy()
+    hidden[held] = np.nan
+    est, _ = calibrate_to_altimeter(fr, hidden, n_ref=n_ref)
+    err = np.abs(est[held] - alt[held])
+    return float(np.median(err)), float(np.max(err)), int(held.size)

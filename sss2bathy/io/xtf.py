@@ -41,6 +41,7 @@ import ctypes
 import datetime as _dt
 import logging
 import math
+import mmap
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -60,7 +61,22 @@ from pyxtf import (
 from scipy.ndimage import median_filter
 
 from sss2bathy.geometry import attitude_to_rotation, rotation_to_attitude
-from sss2bathy.io.bottom import bad_pings, calibrate_to_altimeter, detect_first_return
+from sss2bathy.io.bottom import (
+    bad_pings,
+    calibrate_to_altimeter,
+    detect_first_return,
+    detector_accuracy,
+)
+from sss2bathy.io.xtf_checks import (
+    AltimeterCheck,
+    beam_vs_data,
+    check_altimeter,
+    implausible_altitude,
+    max_beam_edge_scale,
+    nav_units_mismatch,
+    reversed_heading_runs,
+    speed_outliers,
+)
 from sss2bathy.survey import SensorParams, SidescanLine, SurveyFormatError
 from sss2bathy.survey.model import (
     ALTITUDE_DETECTED,
@@ -73,7 +89,9 @@ from sss2bathy.utils.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "ALTITUDE_OFFSET",
     "MISSING_ATTITUDE",
+    "NAV_UNITS",
     "NAV_UNITS_LATLON",
     "NAV_UNITS_METRES",
     "read_xtf",
@@ -92,6 +110,10 @@ DEFAULT_EPOCH_S = 946684800.0
 SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
 # pings without attitude: refuse them, or take the heading from the track (pitch = roll = 0)
 MISSING_ATTITUDE = ("error", "track")
+# the altimeter - first return offset: stored in the stats, or applied to the altimeter
+ALTITUDE_OFFSET = ("record", "apply")
+# the unit of the navigation: the file header's NavUnits, or an override
+NAV_UNITS = ("file", "latlon", "metres")
 
 
 # ----------------------------------------------------------------------------- projection
@@ -146,6 +168,37 @@ class _Parsed:
     attitude: list[XTFAttitudeData]
     truncated: int
     other_packets: dict[str, int]
+    # damaged byte ranges [start, end) skipped by re-synchronising, with the count of sonar
+    # pings read before each
+    damaged: list[tuple[int, int, int]]
+
+
+_MAGIC_BYTES = MAGIC.to_bytes(2, "little")
+
+
+def _packet_size(raw, pos: int, size: int, n_start: int, chained: bool = True) -> int | None:
+    """Record size of a plausible packet at ``pos``: magic 0xFACE, a size that fits the file
+    and (``chained``) is followed by the next packet's magic or the end of the file; else
+    None."""
+    if size - pos < n_start or raw[pos : pos + 2] != _MAGIC_BYTES:
+        return None
+    n_bytes = int.from_bytes(raw[pos + 10 : pos + 14], "little")
+    end = pos + n_bytes
+    if n_bytes < n_start or end > size:
+        return None
+    if not chained or end == size or size - end < n_start or raw[end : end + 2] == _MAGIC_BYTES:
+        return n_bytes
+    return None
+
+
+def _next_packet(raw, start: int, size: int, n_start: int) -> int | None:
+    """Offset of the next plausible packet at or after ``start`` (re-synchronisation)."""
+    q = raw.find(_MAGIC_BYTES, start)
+    while q != -1:
+        if _packet_size(raw, q, size, n_start) is not None:
+            return q
+        q = raw.find(_MAGIC_BYTES, q + 1)
+    return None
 
 
 def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
@@ -157,10 +210,10 @@ def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
     pings: list[XTFPingHeader] = []
     attitude: list[XTFAttitudeData] = []
     other: dict[str, int] = {}
+    damaged: list[tuple[int, int, int]] = []
     truncated = 0
-    start = XTFPacketStart()
     n_start = ctypes.sizeof(XTFPacketStart)
-    with open(path, "rb") as f:
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as raw:
         header = XTFFileHeader.create_from_buffer(f)
         if header.FileFormat != 0x7B:
             raise SurveyFormatError(
@@ -173,23 +226,32 @@ def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
         _sidescan_channels(header, path, channel_pair)  # refuse before parsing any ping
         pos = FILE_HEADER_BYTES
         while pos < size:
-            where = f"packet at byte {pos} (after sonar ping {len(pings) - 1})"
-            if size - pos < n_start:
-                truncated += 1
-                break
+            n_bytes = _packet_size(raw, pos, size, n_start)
+            resume = nxt = None
+            if n_bytes is None:
+                # A damaged packet (bad magic or size) or a cut final one: re-synchronise on
+                # the next plausible packet header; none left means the file ends here.
+                nxt = _next_packet(raw, pos + 1, size, n_start)
+                own = _packet_size(raw, pos, size, n_start, chained=False)
+                if own is not None and (nxt is None or nxt >= pos + own):
+                    # this packet is whole; the damage starts after it
+                    n_bytes, resume = own, size if nxt is None else nxt
+            if n_bytes is None:
+                if nxt is None:
+                    stated = int.from_bytes(raw[pos + 10 : pos + 14], "little")
+                    cut = raw[pos : pos + 2] == _MAGIC_BYTES and (
+                        size - pos < n_start or pos + stated > size
+                    )
+                    if cut or size - pos < n_start:
+                        truncated += 1
+                    else:
+                        damaged.append((pos, size, len(pings)))
+                    break
+                damaged.append((pos, nxt, len(pings)))
+                pos = nxt
+                continue
             f.seek(pos)
-            f.readinto(start)
-            if start.MagicNumber != MAGIC:
-                raise SurveyFormatError(
-                    path, where, "magic number 0xFACE (corrupt file?)", hex(start.MagicNumber)
-                )
-            n_bytes = int(start.NumBytesThisRecord)
-            if n_bytes < n_start:
-                raise SurveyFormatError(path, where, f"a record of >= {n_start} bytes", n_bytes)
-            if pos + n_bytes > size:
-                truncated += 1
-                break
-            f.seek(pos)
+            start = XTFPacketStart.from_buffer_copy(raw[pos : pos + n_start])
             if start.HeaderType == XTFHeaderType.sonar:
                 pings.append(_parse_ping(f, header, path, len(pings)))
             elif start.HeaderType == XTFHeaderType.attitude and n_bytes >= ctypes.sizeof(
@@ -202,10 +264,49 @@ def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
                 except ValueError:
                     name = f"type_{start.HeaderType}"
                 other[name] = other.get(name, 0) + 1
-            pos += n_bytes
+            if resume is not None:
+                damaged.append((pos + n_bytes, resume, len(pings)))
+            pos = pos + n_bytes if resume is None else resume
     if truncated:
         log.warning("%s: skipped a truncated final packet (file cut short)", path)
-    return _Parsed(header, pings, attitude, truncated, other)
+    if damaged:
+        _report_damage(path, size, pings, damaged)
+    return _Parsed(header, pings, attitude, truncated, other, damaged)
+
+
+def _report_damage(
+    path: Path, size: int, pings: list[XTFPingHeader], damaged: list[tuple[int, int, int]]
+) -> None:
+    """One WARNING naming the damaged byte ranges and the pings lost; refuse when most of the
+    file is damaged."""
+    lost_bytes = sum(b - a for a, b, _ in damaged)
+    ranges = ", ".join(
+        f"bytes {a}-{b} ({f'after sonar ping {k - 1}' if k else 'before the first ping'})"
+        for a, b, k in damaged[:3]
+    ) + (f" and {len(damaged) - 3} more" if len(damaged) > 3 else "")
+    if lost_bytes > 0.5 * (size - FILE_HEADER_BYTES):
+        raise SurveyFormatError(
+            path,
+            "packets",
+            "a readable file (at most half of its packets damaged)",
+            f"{lost_bytes} of {size - FILE_HEADER_BYTES} bytes damaged ({ranges})",
+        )
+    record = int(np.median([p.NumBytesThisRecord for p in pings])) if pings else 0
+    lost = 0
+    for a, b, k in damaged:
+        gap = None
+        if 0 < k < len(pings):  # ping numbers on both sides of the damage
+            gap = int(pings[k].PingNumber) - int(pings[k - 1].PingNumber) - 1
+        estimate = math.ceil((b - a) / record) if record else 0
+        lost += gap if gap is not None and 0 <= gap <= 2 * estimate + 1 else estimate
+    log.warning(
+        "%s: damaged packets (bad 0xFACE magic or record size): %s; re-synchronised on the "
+        "next valid packet header, about %d sonar pings lost, %d read",
+        path.name,
+        ranges,
+        lost,
+        len(pings),
+    )
 
 
 def _parse_ping(f, header: XTFFileHeader, path: Path, index: int) -> XTFPingHeader:
@@ -349,8 +450,14 @@ def _check_nav(
     max_jump_m: float,
     max_speed_mps: float,
     ping_ids: np.ndarray,
-) -> tuple[np.ndarray, int]:
-    """Drop isolated outliers (-> gaps), refuse jumps; return the updated validity mask."""
+) -> tuple[np.ndarray, int, float]:
+    """Drop outlier fixes (-> gaps), refuse jumps and too many outliers.
+
+    Outliers: fixes farther than ``max_jump_m`` from the running median of their neighbours,
+    and fixes that left the track faster than ``max_speed_mps``
+    (:func:`~sss2bathy.io.xtf_checks.speed_outliers`). Returns the updated validity mask, the
+    outlier count and their largest implied speed (m/s; 0 without outliers).
+    """
     idx = np.flatnonzero(valid)
     outliers = np.zeros_like(valid)
     if idx.size >= 3:
@@ -358,6 +465,21 @@ def _check_nav(
         med = np.stack([median_filter(xy[idx, k], size=win, mode="nearest") for k in (0, 1)], 1)
         dev = np.linalg.norm(xy[idx] - med, axis=1)
         outliers[idx[dev > max_jump_m]] = True
+    fast, speed = speed_outliers(t, xy, valid, max_speed_mps)
+    outliers |= fast
+    n_valid = int(valid.sum())
+    if outliers.sum() > max(0.1 * n_valid, 1):
+        j = int(np.argmax(outliers))
+        raise SurveyFormatError(
+            path,
+            "position",
+            "at most 10% of the fixes off the track (outliers are interpolated; "
+            f"data.survey.max_speed_mps = {max_speed_mps} m/s, data.survey.max_jump_m = "
+            f"{max_jump_m} m)",
+            f"{int(outliers.sum())} of {n_valid} fixes, the first at ping {ping_ids[j]} "
+            f"(implied speeds up to {np.nanmax(np.where(outliers, speed, np.nan)):.0f} m/s)",
+        )
+    top_speed = float(np.nanmax(np.where(outliers, speed, np.nan))) if outliers.any() else 0.0
     valid = valid & ~outliers
     idx = np.flatnonzero(valid)
     if idx.size >= 2:
@@ -369,10 +491,11 @@ def _check_nav(
             raise SurveyFormatError(
                 path,
                 f"ping {ping_ids[j]}: position",
-                f"a step below {allowed[bad[0]]:.0f} m (max_jump_m + max_speed_mps * dt)",
+                f"a step below {allowed[bad[0]]:.0f} m (data.survey.max_jump_m + "
+                "data.survey.max_speed_mps * dt)",
                 f"a jump of {step[bad[0]]:.0f} m in {t[j] - t[idx[bad[0]]]:.2f} s",
             )
-    return valid, int(outliers.sum())
+    return valid, int(outliers.sum()), top_speed
 
 
 def _unwrap_deg(a: np.ndarray) -> np.ndarray:
@@ -445,6 +568,196 @@ def _file_sound_speed(pings: list[XTFPingHeader]) -> tuple[np.ndarray, float | N
     return np.where(ok, sv, np.nan), (float(np.median(sv[ok])) if ok.any() else None)
 
 
+# ----------------------------------------------------------------------------- altitude
+@dataclass
+class _Altitude:
+    """The altitude of a line and how it was made (:func:`_resolve_altitude`)."""
+
+    altitude: np.ndarray  # (P,) m, NaN = none
+    source: np.ndarray  # (P,) ALTITUDE_* codes
+    check: AltimeterCheck | None  # altimeter vs first return (None: too few pings with both)
+    beyond_range: int  # altimeter values above the slant range, rejected
+    jumps: int  # altimeter jumps off their neighbours and the first return, rejected
+    shifted: int  # filled pings shifted by the nearby altimeter - first return offset
+    shift_m: float  # applied to every altimeter value (altitude_offset: apply)
+    accuracy: list[float] | None  # [median, max] |error| (m) of the fills, cross-validated
+    abs_diff_m: float | None  # median |altimeter - first return|
+
+
+def _resolve_altitude(
+    path: Path,
+    altitude: np.ndarray,
+    picks: Any,
+    t: np.ndarray,
+    max_range_m: float,
+    sensor: SensorParams,
+    tolerance_m: float | None,
+    offset_mode: str,
+) -> _Altitude:
+    """Altimeter where plausible, the calibrated first bottom return elsewhere; refuses an
+    altimeter whose disagreement with the first return is not one offset (or beam-edge scale).
+    """
+    fr = picks.altitude_m
+    fr_picked = np.where(picks.picked, fr, np.nan)
+    ok = np.isfinite(altitude) & (altitude > 0)
+    max_scale = max_beam_edge_scale(sensor.tilt_rad, sensor.beam_width_rad)
+    floor = tolerance_m if tolerance_m is not None else 1.0
+
+    def cross_check(valid: np.ndarray) -> AltimeterCheck | None:
+        return check_altimeter(
+            np.where(valid, altitude, np.nan), fr_picked, t, tolerance_m, max_scale
+        )
+
+    check = cross_check(ok)
+    bad = implausible_altitude(altitude, ok, fr_picked, check, max_range_m, floor)
+    rejected = bad["beyond_range"] | bad["jump"]
+    if rejected.any():
+        ok &= ~rejected
+        check = cross_check(ok)
+    if check is not None and check.model is None:
+        raise SurveyFormatError(
+            path,
+            "SensorPrimaryAltitude",
+            "an altimeter that agrees with the first bottom return up to one offset (spread "
+            f"and drift within data.survey.altitude_tolerance_m = {tolerance_m} m; null skips "
+            "the check)",
+            f"altimeter - first return {check.offset_m:+.2f} m median on {check.n} pings with "
+            f"spread {check.sigma_m:.2f} m and drift {check.drift_m:+.2f} m over the line (nor "
+            f"a beam-edge first return: {check.scale:.2f} x altimeter {check.intercept_m:+.2f} m "
+            f"leaves spread {check.scale_sigma_m:.2f} m, drift {check.scale_drift_m:+.2f} m)",
+        )
+    shift = -check.offset_m if offset_mode == "apply" and check is not None else 0.0
+    if check is not None:
+        _report_altimeter(path, check, sensor, offset_mode)
+    altimeter = np.where(ok, altitude + shift, np.nan)
+    # fills carry the detector's local error against the altimeter (nearest pings with both)
+    repaired, offset = calibrate_to_altimeter(fr, altimeter)
+    out = np.where(ok, altimeter, repaired)
+    source = np.full(len(out), ALTITUDE_MISSING, dtype=np.uint8)
+    source[ok] = ALTITUDE_RECORDED
+    source[~ok & picks.picked] = ALTITUDE_DETECTED
+    source[~ok & picks.interpolated & np.isfinite(fr)] = ALTITUDE_INTERPOLATED
+    accuracy = detector_accuracy(fr_picked, altimeter) if (~ok).any() else None
+    both = ok & picks.picked
+    return _Altitude(
+        altitude=out,
+        source=source,
+        check=check,
+        beyond_range=int(bad["beyond_range"].sum()),
+        jumps=int(bad["jump"].sum()),
+        shifted=int((~ok & (offset != 0)).sum()),
+        shift_m=float(shift),
+        accuracy=None if accuracy is None else [accuracy[0], accuracy[1]],
+        abs_diff_m=float(np.median(np.abs(altimeter[both] - fr[both]))) if both.any() else None,
+    )
+
+
+def _report_altimeter(
+    path: Path, check: AltimeterCheck, sensor: SensorParams, offset_mode: str
+) -> None:
+    """One line: the altimeter - first return offset, its spread and drift, and its cause."""
+    tilt, beam = math.degrees(sensor.tilt_rad), math.degrees(sensor.beam_width_rad)
+    if check.model == "beam_edge":
+        cause = (
+            f"not one offset: first return = {check.scale:.2f} x altimeter "
+            f"{check.intercept_m:+.2f} m (residual spread {check.scale_sigma_m:.2f} m) - the "
+            "detector picks the edge of the vertical beam rather than nadir (tilt "
+            f"{tilt:.0f} deg + beam {beam:.0f} deg / 2 below 90 deg puts it up to "
+            f"{check.max_scale / 1.25:.2f}x the altitude away)"
+        )
+    else:
+        cause = (
+            "one constant offset: the lever arm between the altimeter and the transducers, "
+            "or the detector picking a later edge than the altimeter"
+        )
+    action = (
+        f"altimeter shifted by {-check.offset_m:+.2f} m onto the first return "
+        "(data.survey.altitude_offset: apply)"
+        if offset_mode == "apply"
+        else "altimeter kept, offset stored in the line's import stats "
+        "(data.survey.altitude_offset: record)"
+    )
+    loud = check.model == "beam_edge" or offset_mode == "apply" or abs(check.offset_m) > 0.5
+    log.log(
+        logging.WARNING if loud else logging.INFO,
+        "%s: altimeter - first bottom return %+.2f m (median of %d pings; spread %.2f m, drift "
+        "%+.2f m per 100 pings, %+.2f m over the line): %s; %s",
+        path.name,
+        check.offset_m,
+        check.n,
+        check.sigma_m,
+        check.drift_per_100_m,
+        check.drift_m,
+        cause,
+        action,
+    )
+
+
+def _fill_accuracy(alt: _Altitude, range_m: np.ndarray, sensor: SensorParams) -> str:
+    """How accurate the detector fills are, in words (for the repairs WARNING)."""
+    if alt.accuracy is not None:
+        return (
+            "detector fills against the altimeter (cross-validated on pings having both): "
+            f"median |error| {alt.accuracy[0]:.2f} m, max {alt.accuracy[1]:.2f} m"
+        )
+    if alt.check is None and (alt.source == ALTITUDE_RECORDED).sum() == 0:
+        bin_m = float(range_m[1] - range_m[0]) if range_m.size > 1 else float("nan")
+        top = math.degrees(sensor.tilt_rad + sensor.beam_width_rad / 2)
+        edge = f"up to {1 / math.sin(math.radians(top)):.2f}x" if top < 90 else "about 1x"
+        return (
+            "no altimeter value to check the detector against: expect about one bin "
+            f"({bin_m:.3f} m) on flat seabed, absolute offset unknown (where nadir is "
+            f"outside the beam the first return is its edge, {edge} the altitude)"
+        )
+    return "no ping with both altimeter and first return to check the fills against"
+
+
+def _report_beam(
+    path: Path, sides: list[dict[str, Any]], sensor: SensorParams, max_range_m: float
+) -> None:
+    """One WARNING where the beam limits of the configured tilt / beam width cut bright seabed
+    or keep bins without seabed return (:func:`~sss2bathy.io.xtf_checks.beam_vs_data`)."""
+    tilt, beam = math.degrees(sensor.tilt_rad), math.degrees(sensor.beam_width_rad)
+    parts = []
+    for name, side in zip(("port", "starboard"), sides, strict=True):
+        if side.get("masked_bright"):
+            a, b, k = side["masked_bright"]
+            parts.append(
+                f"the beam limits mask {a:.2f}x-{b:.2f}x altitude on {name} where the median "
+                f"intensity is {k:.1f} times the noise floor"
+            )
+        if side.get("kept_dark"):
+            a, b, k = side["kept_dark"]
+            parts.append(
+                f"they keep {a:.2f}x-{b:.2f}x altitude on {name} where the median intensity is "
+                f"only {k:.1f} times the noise floor (water column / no seabed)"
+            )
+    if not parts:
+        return
+    seen = "; ".join(
+        f"{name} seabed return from {s['seabed_from']:.2f}x altitude to "
+        + (
+            f"{s['seabed_to']:.2f}x"
+            if s["seabed_to"] is not None
+            else f"the {max_range_m:.0f} m range"
+        )
+        for name, s in zip(("port", "starboard"), sides, strict=True)
+        if s.get("seabed_from") is not None
+    )
+    log.warning(
+        "%s: sonar settings vs data: with tilt %.0f deg and beam width %.0f deg (depression "
+        "%.0f..%.0f deg) on a flat seabed %s; %s; check data.survey.tilt_deg / "
+        "data.survey.beam_width_deg",
+        path.name,
+        tilt,
+        beam,
+        tilt - beam / 2,
+        tilt + beam / 2,
+        ", ".join(parts),
+        seen or "no clear seabed return",
+    )
+
+
 # ----------------------------------------------------------------------------- reader
 def read_xtf(
     path: str | Path,
@@ -464,6 +777,8 @@ def read_xtf(
     blanking_m: float = 0.0,
     auto_blanking: bool = True,
     altitude_tolerance_m: float | None = 1.0,
+    altitude_offset: str = "record",
+    nav_units: str = "file",
 ) -> tuple[SidescanLine, dict[str, Any]]:
     """Read one XTF file into a :class:`SidescanLine` in the survey's local ENU frame.
 
@@ -496,13 +811,25 @@ def read_xtf(
         blanking_m, auto_blanking: the transducer ring-down zone the detector never searches,
             and whether to also estimate it from the near-field decay
             (:func:`sss2bathy.io.bottom.detect_first_return`).
-        altitude_tolerance_m: refuse the file when the altimeter and the detector differ by more
-            than this on most pings having both (``None``: no check).
+        altitude_tolerance_m: refuse the file when the disagreement between the altimeter and
+            the first bottom return is not one offset (or the beam-edge scale): its spread or
+            drift over the line exceeds this (m) (:func:`~sss2bathy.io.xtf_checks.check_altimeter`;
+            ``None``: no refusal). Also the least jump (m) of an altimeter value rejected as
+            implausible.
+        altitude_offset: ``"record"`` keeps the altimeter and stores the offset (median of
+            altimeter - first return) in ``stats``; ``"apply"`` shifts the altimeter by it
+            onto the sonar's first return (a lever arm between altimeter and transducers).
+        nav_units: ``"file"`` (the header's ``NavUnits``), ``"latlon"`` or ``"metres"`` (the
+            header is wrong). Coordinates that do not look like the unit used are refused.
 
     Pings whose samples on a side are constant, saturated or NaN get NaN intensities there
-    (no-hit). Where the altimeter is 0/NaN the altitude comes from the first bottom return
-    (or short-gap interpolation between returns), else stays NaN; ``line.altitude_source``
-    records which, and one WARNING per file counts every repair.
+    (no-hit). Where the altimeter is 0/NaN, beyond the slant range or an implausible jump
+    (:func:`~sss2bathy.io.xtf_checks.implausible_altitude`) the altitude comes from the first
+    bottom return calibrated to the nearby altimeter (or short-gap interpolation between
+    returns), else stays NaN; ``line.altitude_source`` records which, and one WARNING per file
+    counts every repair with its cross-validated accuracy. Every repair that changes data is a
+    WARNING; so are a sonar setting the data contradict (:func:`~sss2bathy.io.xtf_checks.
+    beam_vs_data`) and resampling to ``n_bins``.
 
     Returns:
         ``(line, stats)``: ``stats`` holds the origin, CRS, counts of everything interpolated,
@@ -534,6 +861,12 @@ def read_xtf(
         )
     if not (math.isfinite(blanking_m) and blanking_m >= 0):
         raise ValueError(f"blanking_m: expected a distance >= 0 (m), found {blanking_m}")
+    if altitude_offset not in ALTITUDE_OFFSET:
+        raise ValueError(
+            f"altitude_offset: expected one of {ALTITUDE_OFFSET}, found {altitude_offset!r}"
+        )
+    if nav_units not in NAV_UNITS:
+        raise ValueError(f"nav_units: expected one of {NAV_UNITS}, found {nav_units!r}")
     if not path.is_file():
         raise SurveyFormatError(path, "file", "an existing XTF file", "missing file")
 
@@ -543,16 +876,25 @@ def read_xtf(
     if not parsed.pings:
         raise SurveyFormatError(path, "sonar pings", "at least 2 sonar pings (type 0)", 0)
 
-    nav_units = int(header.NavUnits)
-    if nav_units not in (NAV_UNITS_METRES, NAV_UNITS_LATLON):
-        raise SurveyFormatError(path, "NavUnits", "0 (metres) or 3 (latitude/longitude)", nav_units)
+    file_units = int(header.NavUnits)
+    if nav_units != "file":
+        file_units = NAV_UNITS_LATLON if nav_units == "latlon" else NAV_UNITS_METRES
+    elif file_units not in (NAV_UNITS_METRES, NAV_UNITS_LATLON):
+        raise SurveyFormatError(
+            path,
+            "NavUnits",
+            "0 (metres) or 3 (latitude/longitude) (or set data.survey.nav_units)",
+            file_units,
+        )
+    nav_units_code = file_units
 
     sv_ping, sv_file = _file_sound_speed(parsed.pings)
     overrides = dict(sensor or {})
     unknown = set(overrides) - set(SENSOR_KEYS)
     if unknown:
         raise ValueError(f"sensor: expected keys among {SENSOR_KEYS}, found {sorted(unknown)}")
-    sensor_params = _resolve_sensor(path, read_xtf_sensor(path, channel_pair), overrides, sv_file)
+    file_sensor = read_xtf_sensor(path, channel_pair)
+    sensor_params = _resolve_sensor(path, file_sensor, overrides, sv_file)
     c_default = sv_file if sv_file is not None else sensor_params.sound_speed_mps
 
     # ---- per-ping fields; pings lacking one of the two sides are skipped
@@ -622,10 +964,28 @@ def read_xtf(
     # ---- navigation: raw coordinates -> projected -> local
     def plausible(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         ok = np.isfinite(x) & np.isfinite(y) & ~((x == 0) & (y == 0))
-        if nav_units == NAV_UNITS_LATLON:
+        if nav_units_code == NAV_UNITS_LATLON:
             ok &= (np.abs(x) <= 180) & (np.abs(y) <= 90)
         return ok
 
+    has_sensor = np.isfinite(sx) & np.isfinite(sy) & ~((sx == 0) & (sy == 0))
+    units_problem = nav_units_mismatch(
+        np.where(has_sensor, sx, shx),
+        np.where(has_sensor, sy, shy),
+        t,
+        has_sensor | (np.isfinite(shx) & np.isfinite(shy) & ~((shx == 0) & (shy == 0))),
+        latlon=nav_units_code == NAV_UNITS_LATLON,
+    )
+    if units_problem is not None:
+        stated = "latitude/longitude (3)" if nav_units_code == NAV_UNITS_LATLON else "metres (0)"
+        source = "NavUnits" if nav_units == "file" else "data.survey.nav_units"
+        raise SurveyFormatError(
+            path,
+            "NavUnits",
+            f"coordinates in {stated} as {source} states (set data.survey.nav_units: latlon or "
+            "metres when the header is wrong)",
+            units_problem,
+        )
     sensor_ok = plausible(sx, sy)
     ship_ok = plausible(shx, shy) & ~sensor_ok
     depth_ok = np.isfinite(depth)
@@ -635,7 +995,7 @@ def read_xtf(
         )
 
     raw_x, raw_y = np.where(sensor_ok, sx, shx), np.where(sensor_ok, sy, shy)
-    if nav_units == NAV_UNITS_LATLON:
+    if nav_units_code == NAV_UNITS_LATLON:
         source_crs = "EPSG:4326"
         j = int(np.argmax(sensor_ok | ship_ok))
         default_crs = crs or utm_crs_for(float(raw_x[j]), float(raw_y[j]))
@@ -643,7 +1003,7 @@ def read_xtf(
         source_crs = crs if crs is not None else (origin or {}).get("crs")
         default_crs = source_crs
     frame_crs = origin.get("crs") if origin is not None else default_crs
-    if nav_units == NAV_UNITS_LATLON and frame_crs is None:
+    if nav_units_code == NAV_UNITS_LATLON and frame_crs is None:
         raise SurveyFormatError(
             path, "origin.crs", "a projected CRS for geographic navigation", None
         )
@@ -659,7 +1019,9 @@ def read_xtf(
         ex = np.where(ship_ok, ex - layback * np.sin(h), ex)
         ny_ = np.where(ship_ok, ny_ - layback * np.cos(h), ny_)
     xy = np.stack([ex, ny_], axis=1)
-    nav_ok, outliers = _check_nav(path, t, xy, nav_ok, max_jump_m, max_speed_mps, ping_ids)
+    nav_ok, outliers, outlier_speed = _check_nav(
+        path, t, xy, nav_ok, max_jump_m, max_speed_mps, ping_ids
+    )
     if nav_ok.sum() < 2:
         raise SurveyFormatError(path, "position", "at least 2 valid fixes", int(nav_ok.sum()))
 
@@ -679,7 +1041,7 @@ def read_xtf(
         raise SurveyFormatError(
             path,
             f"ping {ping_ids[after]}: position",
-            f"navigation gaps up to max_nav_gap_s = {max_nav_gap_s} s",
+            f"navigation gaps up to data.survey.max_nav_gap_s = {max_nav_gap_s} s",
             f"a gap of {gaps[j]:.1f} s",
         )
     nav_interp = int((~nav_ok).sum())
@@ -707,13 +1069,25 @@ def read_xtf(
             raise SurveyFormatError(
                 path,
                 f"ping {ping_ids[j]}: attitude",
-                "finite SensorHeading/Pitch/Roll or attitude packets (or missing_attitude: track)",
+                "finite SensorHeading/Pitch/Roll or attitude packets (or "
+                "data.survey.missing_attitude: track)",
                 why,
             )
         track_heading_pings = int((~att_ok).sum())
         heading = np.where(att_ok, heading, course)
         pitch = np.where(att_ok, pitch, 0.0)
         roll = np.where(att_ok, roll, 0.0)
+    reversed_runs = reversed_heading_runs(t, xy, np.where(att_ok, heading, np.nan))
+    if reversed_runs:
+        a, b, angle = reversed_runs[0]
+        n_rev = sum(e - f + 1 for f, e, _ in reversed_runs)
+        raise SurveyFormatError(
+            path,
+            f"pings {ping_ids[a]}-{ping_ids[b]}: SensorHeading",
+            "a heading within 135 deg of the course over ground (else port and starboard swap)",
+            f"{angle:.0f} deg off the course on {n_rev} pings in {len(reversed_runs)} run(s): "
+            "a heading reversed by 180 deg (fix the heading, or read those pings apart)",
+        )
     R = attitude_to_rotation(np.radians(heading), np.radians(pitch), np.radians(roll))
 
     # Lever arm of the transducers (XTF: X starboard, Y forward, Z down) -> FLU.
@@ -763,6 +1137,16 @@ def read_xtf(
     off_window = sum(
         1 for c in ports + stbds if abs(c.r_start - r0) > 1e-6 or abs(c.r_end - r1) > 1e-6
     )
+    if B != native:
+        log.warning(
+            "%s: %d samples per side (%.3f m each) resampled to %d bins (%.3f m each; "
+            "data.survey.n_bins, null keeps the recorded samples)",
+            path.name,
+            native,
+            (r1 - r0) / native,
+            B,
+            (r1 - r0) / B,
+        )
 
     # ---- unusable pings (constant, saturated or NaN over a whole side): no-hit (NaN)
     flags = [bad_pings(intensity[:, side]) for side in (0, 1)]
@@ -778,8 +1162,7 @@ def read_xtf(
             f"every ping constant, saturated or NaN ({ping_flags})",
         )
 
-    # ---- altitude: altimeter where valid, first bottom return elsewhere
-    alt_ok = np.isfinite(altitude) & (altitude > 0)
+    # ---- altitude: altimeter where plausible, calibrated first bottom return elsewhere
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # both sides NaN -> NaN: a bad ping
         mean_wf = np.nanmean(intensity.astype(np.float64), axis=1)
@@ -791,27 +1174,10 @@ def read_xtf(
         auto_blanking=auto_blanking,
     )
     first_return = picks.altitude_m
-    both = alt_ok & picks.picked
-    diff = altitude[both] - first_return[both]
-    if altitude_tolerance_m is not None and both.sum() >= 10:
-        off = np.abs(diff) > altitude_tolerance_m
-        if off.mean() > 0.5:
-            raise SurveyFormatError(
-                path,
-                "SensorPrimaryAltitude",
-                f"altimeter and first bottom return within {altitude_tolerance_m} m on most "
-                "pings (data.survey.altitude_tolerance_m; null skips the check)",
-                f"{int(off.sum())} of {int(both.sum())} pings differ "
-                f"(median |difference| {float(np.median(np.abs(diff))):.2f} m, "
-                f"blanking {picks.blanking_m:.2f} m)",
-            )
-    # repairs carry the detector's local error against the altimeter (nearest pings with both)
-    repaired_alt, offset = calibrate_to_altimeter(first_return, np.where(alt_ok, altitude, np.nan))
-    altitude = np.where(alt_ok, altitude, repaired_alt)
-    source = np.full(len(altitude), ALTITUDE_MISSING, dtype=np.uint8)
-    source[alt_ok] = ALTITUDE_RECORDED
-    source[~alt_ok & picks.picked] = ALTITUDE_DETECTED
-    source[~alt_ok & picks.interpolated & np.isfinite(first_return)] = ALTITUDE_INTERPOLATED
+    alt = _resolve_altitude(
+        path, altitude, picks, t, r1, sensor_params, altitude_tolerance_m, altitude_offset
+    )
+    altitude, source = alt.altitude, alt.source
     if not np.isfinite(altitude).any():
         raise SurveyFormatError(
             path,
@@ -820,11 +1186,11 @@ def read_xtf(
             f"neither on any of {len(altitude)} pings",
         )
     repairs = {
+        "altimeter values beyond the slant range rejected": alt.beyond_range,
+        "altimeter jumps (off their neighbours and the first return) rejected": alt.jumps,
         "filled from the detector": int((source == ALTITUDE_DETECTED).sum()),
         "interpolated between detected pings": int((source == ALTITUDE_INTERPOLATED).sum()),
-        "of those shifted by the nearest pings' altimeter - first return offset": int(
-            (~alt_ok & (offset != 0)).sum()
-        ),
+        "of those shifted by the nearest pings' altimeter - first return offset": alt.shifted,
         "left missing (NaN, no altimeter point)": int((source == ALTITUDE_MISSING).sum()),
         "first returns rejected (edge in the blanking zone)": int(picks.rejected.sum()),
         "pings masked as no-hit (constant)": ping_flags["constant"],
@@ -832,19 +1198,22 @@ def read_xtf(
         "pings masked as no-hit (NaN samples)": ping_flags["nonfinite"],
     }
     if any(repairs.values()):
-        check = (
-            f"median |altimeter - first return| {float(np.median(np.abs(diff))):.2f} m "
-            f"on {diff.size} pings"
-            if diff.size
-            else "no ping with both altimeter and first return"
-        )
         log.warning(
             "%s: altitude/sample repairs: %s; blanking %.2f m; %s",
             path.name,
             ", ".join(f"{v} {k}" for k, v in repairs.items() if v),
             picks.blanking_m,
-            check,
+            _fill_accuracy(alt, range_m, sensor_params),
         )
+    sonar_vs_data = beam_vs_data(
+        intensity,
+        range_m,
+        altitude,
+        R,
+        sensor_params.beam_limits_rad,
+        blanking_m=picks.blanking_m,
+    )
+    _report_beam(path, sonar_vs_data, sensor_params, r1)
 
     line = SidescanLine(
         name=name or path.stem,
@@ -858,12 +1227,12 @@ def read_xtf(
         extras={"first_return_m": first_return.astype(np.float32)},
         altitude_source=source,
     )
-    diff = altitude[alt_ok] - first_return[alt_ok]
+    chk = alt.check
     stats: dict[str, Any] = {
         "file": str(path),
         "origin": frame_origin,
         "crs": frame_origin["crs"],
-        "nav_units": "latlon" if nav_units == NAV_UNITS_LATLON else "metres",
+        "nav_units": "latlon" if nav_units_code == NAV_UNITS_LATLON else "metres",
         "pings_in_file": len(parsed.pings),
         "pings": line.n_pings,
         "pings_missing_channel": missing_channel,
@@ -884,8 +1253,22 @@ def read_xtf(
         "pings_constant": ping_flags["constant"],
         "pings_saturated": ping_flags["saturated"],
         "pings_nonfinite": ping_flags["nonfinite"],
-        "altimeter_minus_first_return_m": float(np.median(diff)) if diff.size else None,
-        "altimeter_vs_first_return_abs_m": float(np.median(np.abs(diff))) if diff.size else None,
+        "altimeter_rejected_beyond_range": alt.beyond_range,
+        "altimeter_rejected_jumps": alt.jumps,
+        # altimeter - first return over the pings having both (the offset later stages read)
+        "altimeter_minus_first_return_m": None if chk is None else chk.offset_m,
+        "altimeter_vs_first_return_abs_m": alt.abs_diff_m,
+        "altitude_offset_sigma_m": None if chk is None else chk.sigma_m,
+        "altitude_offset_drift_m": None if chk is None else chk.drift_m,
+        "altitude_offset_drift_per_100_pings_m": None if chk is None else chk.drift_per_100_m,
+        "altitude_offset_pings": 0 if chk is None else chk.n,
+        "altitude_offset_model": None if chk is None else chk.model,
+        "first_return_scale": None if chk is None else chk.scale,
+        "first_return_intercept_m": None if chk is None else chk.intercept_m,
+        "altitude_offset_applied_m": alt.shift_m,
+        "altitude_fill_error_m": alt.accuracy,
+        "sonar_vs_data": sonar_vs_data,
+        "file_frequency_hz": file_sensor["frequency_hz"],
         "samples_per_side": native,
         "n_bins": B,
         "range_window_m": [r0, r1],
@@ -894,22 +1277,30 @@ def read_xtf(
         "sound_speed_mps": sensor_params.sound_speed_mps,
     }
     counts = {k: v for k, v in stats.items() if k in _LOGGED and v}
+    if outlier_speed:
+        counts["nav_outliers"] = f"{outliers} (implied speeds up to {outlier_speed:.0f} m/s)"
     if counts:
-        log.info("%s: %s", path.name, ", ".join(f"{k}={v}" for k, v in counts.items()))
+        # every one of these changed or dropped data: a WARNING, never INFO
+        log.warning(
+            "%s: navigation/ping repairs: %s",
+            path.name,
+            ", ".join(f"{_LOGGED[k]} {v}" for k, v in counts.items()),
+        )
     return line, stats
 
 
-_LOGGED = (
-    "pings_missing_channel",
-    "pings_dropped_nav",
-    "packets_truncated",
-    "nav_interpolated",
-    "nav_outliers",
-    "positions_from_ship",
-    "depth_interpolated",
-    "attitude_from_track",
-    "channels_off_window",
-)
+#: stats counted in the repairs WARNING, with their wording
+_LOGGED = {
+    "pings_missing_channel": "pings skipped for a missing sidescan channel:",
+    "pings_dropped_nav": "pings dropped before the first / after the last fix:",
+    "packets_truncated": "truncated final packets skipped:",
+    "nav_interpolated": "fixes interpolated (missing or outliers):",
+    "nav_outliers": "fixes rejected as outliers:",
+    "positions_from_ship": "sensor fixes taken from the ship position moved back by the layback:",
+    "depth_interpolated": "depths interpolated:",
+    "attitude_from_track": "headings taken from the course made good:",
+    "channels_off_window": "channels resampled onto the common range window:",
+}
 
 
 # ----------------------------------------------------------------------------- writer

@@ -177,15 +177,19 @@ def test_truncated_file_header(tmp_path, line, origin):
         read_xtf(path)
 
 
-def test_corrupt_packet_names_file_and_ping(tmp_path, line, origin, xtf_patch):
+def test_destroyed_magic_is_skipped_by_resynchronising(tmp_path, line, origin, xtf_patch, caplog):
     _, _, offsets = xtf_patch
     path = written(tmp_path, line, origin)
-    off = offsets(path)[7]
+    offs = offsets(path)
     raw = bytearray(path.read_bytes())
-    raw[off : off + 2] = b"\x00\x00"  # destroy the 0xFACE magic number of ping 7
+    raw[offs[7] : offs[7] + 2] = b"\x00\x00"  # destroy the 0xFACE magic number of ping 7
     path.write_bytes(bytes(raw))
-    with pytest.raises(SurveyFormatError, match=r"L0\.xtf.*after sonar ping 6.*0xFACE"):
-        read_xtf(path)
+    with caplog.at_level(logging.WARNING):
+        back, stats = read_xtf(path, origin=origin)
+    assert back.n_pings == line.n_pings - 1 and stats["packets_truncated"] == 0
+    np.testing.assert_allclose(back.time_s[7] - back.time_s[6], 0.4, atol=0.006)
+    msg = next(r.getMessage() for r in caplog.records if "damaged packets" in r.getMessage())
+    assert f"bytes {offs[7]}-{offs[8]} (after sonar ping 6)" in msg and "1 sonar pings lost" in msg
 
 
 def test_corrupt_sample_count_names_ping(tmp_path, line, origin, xtf_patch):
@@ -478,7 +482,11 @@ def test_dead_pings_are_no_hit_and_their_missing_altitude_stays_nan(tmp_path, li
     assert np.isnan(back.altitude_m[5:7]).all() and np.all(back.altitude_source[5:7] == 3)
     assert back.altitude_m[7] == pytest.approx(line.altitude_m[7], abs=1e-5)
     assert stats["altitude_missing"] == 2
-    warning = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    warning = [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING and "altitude/sample repairs" in r.getMessage()
+    ]
     assert len(warning) == 1 and "L0.xtf" in warning[0]
     assert "2 left missing" in warning[0] and "3 pings masked as no-hit (constant)" in warning[0]
 
@@ -512,22 +520,22 @@ def test_zero_and_nan_altitude_repaired_within_20cm_despite_ringdown(
     assert np.all(back.altitude_m > 0)
     assert 1.0 <= stats["blanking_m"] <= 2.5 and stats["altitude_detected"] == 30
     assert stats["altimeter_vs_first_return_abs_m"] <= 0.1
-    assert "30 filled from the detector" in caplog.text and "median |altimeter" in caplog.text
+    assert "30 filled from the detector" in caplog.text and "median |error|" in caplog.text
 
 
-def test_altimeter_and_detector_disagreeing_on_most_pings_is_refused(
+def test_altimeter_with_a_constant_3m_offset_is_kept_or_shifted(
     tmp_path, make_line, make_pings, origin
 ):
     ln, truth = ringdown_line(make_line, make_pings)
-    ln.altitude_m = (truth + 3.0).astype(np.float32)  # altimeter off by 3 m
+    ln.altitude_m = (truth + 3.0).astype(np.float32)  # altimeter 3 m longer on every ping
     path = written(tmp_path, ln, origin)
-    with pytest.raises(SurveyFormatError) as err:
-        read_xtf(path, origin=origin)
-    msg = str(err.value)
-    assert "\n" not in msg and "L0.xtf" in msg and "SensorPrimaryAltitude" in msg
-    assert "80 of 80 pings differ" in msg and "altitude_tolerance_m" in msg
-    back, _ = read_xtf(path, origin=origin, altitude_tolerance_m=None)
-    assert np.all(back.altitude_source == 0)
+    back, stats = read_xtf(path, origin=origin)  # one offset explains it: recorded, kept
+    assert stats["altimeter_minus_first_return_m"] == pytest.approx(3.0, abs=0.1)
+    assert stats["altitude_offset_model"] == "offset" and np.all(back.altitude_source == 0)
+    np.testing.assert_allclose(back.altitude_m, ln.altitude_m, atol=1e-5)
+    shifted, stats = read_xtf(path, origin=origin, altitude_offset="apply")
+    assert stats["altitude_offset_applied_m"] == pytest.approx(-3.0, abs=0.1)
+    assert np.abs(shifted.altitude_m - truth).max() <= 0.15
 
 
 def test_attitude_packets_replace_missing_ping_attitude(tmp_path, line, origin, xtf_patch):
