@@ -202,6 +202,7 @@ class SirenModule(pl.LightningModule):
             inputs.bounds, inputs.grid, inputs.track_xy, radius, self.eval_cell_m,
             inputs.holdout, swath=swath,
             altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy().astype(np.float64),
+            origin=inputs.origin,
         )  # fmt: skip
         if isinstance(self.sensor, MBESCellFit):
             grid = inputs.grid

@@ -107,11 +107,14 @@ class MapScorer:
         holdout: AltimeterSplit | None = None,
         swath: Mapping[str, np.ndarray] | None = None,
         altimeter_xy: np.ndarray | None = None,
+        origin: Mapping[str, Any] | None = None,
     ) -> MapScorer:
         """Args (besides the fields): ``swath``, the :func:`swath_footprint_mask` arguments
         of the pings used (:func:`swath_inputs`; None: no footprint, the export's older
-        coverage); ``altimeter_xy`` ``(M, 2)``, the fitted altimeter points."""
-        like = grid if grid is not None else grid_over_bounds(bounds, eval_cell_m)
+        coverage); ``altimeter_xy`` ``(M, 2)``, the fitted altimeter points; ``origin``, the
+        survey origin (a grid without MBES has its cell edges on multiples of the cell in
+        true coordinates, :func:`grid_over_bounds`)."""
+        like = grid if grid is not None else grid_over_bounds(bounds, eval_cell_m, origin=origin)
         scorer = cls(like, grid, track_region_mask(like, track_xy, radius_m))
         if holdout is not None and holdout.n_held > 0:
             scorer.holdout_points = torch.from_numpy(np.asarray(holdout.held, np.float32))
