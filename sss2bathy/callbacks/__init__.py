@@ -1,6 +1,8 @@
 """Lightning callbacks of the fits, in one package (configured in ``conf/callbacks/``, or
 added by a module's ``configure_callbacks``).
 
+* :mod:`~sss2bathy.callbacks.checkpoint`: the resumable ``last.ckpt`` (every epoch, every N
+  steps, on SIGTERM / SIGINT), atomic checkpoint writes;
 * :mod:`~sss2bathy.callbacks.guard`: non-finite step guard, global RNG state in checkpoints;
 * :mod:`~sss2bathy.callbacks.curve`: ``metric_curve.csv`` (metric against time);
 * :mod:`~sss2bathy.callbacks.hparams`: the run's HPARAMS record (identity, parameters,
@@ -14,6 +16,13 @@ Callbacks read what a module exposes (``latest_evaluation``, ``final_map()``,
 ``sidescan_geometry()``, ``test_set_name()``) and import nothing from ``modules``.
 """
 
+from sss2bathy.callbacks.checkpoint import (
+    AtomicCheckpointIO,
+    Interruption,
+    LastCheckpoint,
+    interruption,
+    use_atomic_checkpoints,
+)
 from sss2bathy.callbacks.curve import MetricCurve, read_curve, write_curve
 from sss2bathy.callbacks.guard import (
     GlobalRNGState,
@@ -33,6 +42,9 @@ from sss2bathy.callbacks.writers import (
 )
 
 __all__ = [
+    "AtomicCheckpointIO",
+    "Interruption",
+    "LastCheckpoint",
     "CNNTableWriter",
     "GlobalRNGState",
     "LambertCurvesLogger",
@@ -45,9 +57,11 @@ __all__ = [
     "SirenMapImages",
     "MetricsTableLogger",
     "global_rng_state",
+    "interruption",
     "metrics_table",
     "read_curve",
     "render_window_panel",
     "set_global_rng_state",
+    "use_atomic_checkpoints",
     "write_curve",
 ]

@@ -8,7 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from sss2bathy.utils.checkpoints import RESUME_PATTERNS, find_checkpoints
+from sss2bathy.utils.checkpoints import FALLBACK_PATTERNS, RESUME_PATTERNS, find_checkpoints
 
 log = logging.getLogger("sss2bathy")
 
@@ -35,11 +35,15 @@ def instantiate_loggers(cfg: DictConfig | None) -> list:
 def latest_resume_checkpoint(run_dir: Path) -> Path | None:
     """The newest checkpoint to resume a run folder from, or None.
 
-    Candidates: ``checkpoints/last.ckpt`` (ModelCheckpoint's periodic save) and
-    ``hpc_ckpt_<n>.ckpt`` (what Lightning's SLURM auto-requeue writes into the trainer's
-    ``default_root_dir`` on the pre-emption signal, see ``conf/trainer/slurm.yaml``).
+    ``checkpoints/last.ckpt`` (:class:`~sss2bathy.callbacks.LastCheckpoint`'s save, every
+    epoch and every N steps) or ``hpc_ckpt_<n>.ckpt`` (what Lightning's SLURM auto-requeue
+    writes into the trainer's ``default_root_dir`` on the pre-emption signal, see
+    ``conf/trainer/slurm.yaml``), whichever is newer; without either, the newest other
+    ``checkpoints/*.ckpt`` (a top-k save such as the CNN's ``epoch_NNNN.ckpt``).
     """
     found = find_checkpoints(run_dir, RESUME_PATTERNS)
+    if not found:
+        found = find_checkpoints(run_dir, FALLBACK_PATTERNS)
     return found[-1] if found else None
 
 
@@ -56,15 +60,17 @@ def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path | None) -> str | None
       with ``ckpt_path=<old run dir>`` (the new run gets its own folder);
     * a run folder: its newest checkpoint (an error when it has none);
     * a checkpoint file.
+
+    Only the path is resolved here; ``sss2bathy.cli.train.fit`` reads the file, checks its
+    kind and logs where the fit resumes.
     """
     if ckpt_path in (None, "", "null"):
         return None
     if ckpt_path == "last":
         found = latest_resume_checkpoint(run_dir) if run_dir is not None else None
         if found is None:
-            log.warning("ckpt_path=last: no last.ckpt in %s; starting fresh", run_dir)
+            log.warning("ckpt_path=last: no checkpoint in %s; starting fresh", run_dir)
             return None
-        log.info("resuming from %s", found)
         return str(found)
     path = Path(ckpt_path)
     if path.is_dir():
@@ -73,7 +79,6 @@ def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path | None) -> str | None
             raise FileNotFoundError(
                 f"ckpt_path: expected a run folder with checkpoints/last.ckpt, found none in {path}"
             )
-        log.info("resuming from %s", found)
         return str(found)
     if not path.is_file():
         raise FileNotFoundError(

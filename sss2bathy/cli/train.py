@@ -6,9 +6,12 @@ sss2bathy-train -m experiment=siren_gt_n2d model.w_height=0.1,1,10 seed=1,2
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import os
 import shutil
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +24,7 @@ from sss2bathy.cli._common import (
     apply_extras,
     hydra_entry,
     log_config,
+    one_line,
     setup_environment,
     write_run_record,
 )
@@ -157,7 +161,114 @@ def instantiate_run(cfg: DictConfig, run_dir: Path | None = None) -> Run:
         ),
         cfg,
     )
+    # every checkpoint to a temporary name, then renamed: never a truncated last.ckpt
+    from sss2bathy.callbacks import use_atomic_checkpoints
+
+    use_atomic_checkpoints(trainer)
     return Run(datamodule, model, callbacks, loggers, trainer)
+
+
+def module_kind(model: Any) -> str | None:
+    """The :func:`~sss2bathy.utils.checkpoints.checkpoint_kind` the checkpoints of
+    ``model`` have (None for another module)."""
+    from sss2bathy.models.lambertian import LambertianSensorModel
+    from sss2bathy.modules.normal_cnn import NormalCNNModule
+    from sss2bathy.modules.siren import SirenModule
+    from sss2bathy.utils.checkpoints import KIND_CNN, KIND_LAMBERT, KIND_SIREN
+
+    if isinstance(model, NormalCNNModule):
+        return KIND_CNN
+    if isinstance(model, SirenModule):
+        lambert = isinstance(getattr(model, "sensor", None), LambertianSensorModel)
+        return KIND_LAMBERT if lambert else KIND_SIREN
+    return None
+
+
+def check_checkpoints(cfg: DictConfig, model: Any, ckpt_path: str | None) -> None:
+    """Read the checkpoints a run will load before any data is made: ``ckpt_path`` must be
+    a checkpoint of the module being trained, ``data.cnn_checkpoint`` (a file) a CNN's.
+    Each problem is one line naming the key, the file and what it holds; a resume logs
+    where it starts ("resuming from <path> at epoch k (step s)")."""
+    from sss2bathy.utils.checkpoints import (
+        KIND_CNN,
+        expect_kind,
+        read_checkpoint,
+        resume_position,
+    )
+
+    cnn = OmegaConf.select(cfg, "data.cnn_checkpoint")
+    if OmegaConf.select(cfg, "data.normals") == "cnn" and cnn not in (None, "", "latest"):
+        expect_kind(
+            read_checkpoint(cnn, "data.cnn_checkpoint"), cnn, "data.cnn_checkpoint", KIND_CNN
+        )
+    if ckpt_path is None:
+        return
+    ckpt = read_checkpoint(ckpt_path, "ckpt_path")
+    kind = module_kind(model)
+    if kind is not None:
+        expect_kind(ckpt, ckpt_path, "ckpt_path", kind)
+    if cfg.get("train", True):
+        epoch, step = resume_position(ckpt)
+        log.info("resuming from %s at epoch %d (step %d)", ckpt_path, epoch, step)
+    else:
+        log.info("testing the checkpoint %s (epoch %d)", ckpt_path, int(ckpt.get("epoch", 0)))
+
+
+def _rank_zero_process() -> bool:
+    """Not a rank > 0 of a distributed launch (torchrun, srun, Lightning's DDP launcher),
+    which shares rank 0's run folder."""
+    return all(
+        os.environ.get(var, "0") in ("", "0")
+        for var in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID")
+    )
+
+
+def run_folder_lock(run_dir: Path | None) -> contextlib.AbstractContextManager:
+    """The run folder's lock (:func:`~sss2bathy.utils.atomic.folder_lock`): a second fit
+    into a folder another live fit is writing refuses at once (one line)."""
+    from sss2bathy.utils.atomic import folder_lock
+
+    if run_dir is None or not _rank_zero_process():
+        return contextlib.nullcontext()
+    return folder_lock(run_dir)
+
+
+def _state_dict_mismatch(err: RuntimeError, ckpt_path: str | None) -> ValueError | None:
+    """A one-line error for a checkpoint whose weights do not fit the model, else None."""
+    text = str(err)
+    if ckpt_path is None or not text.startswith("Error(s) in loading state_dict"):
+        return None
+    detail = one_line(text.split(":", 1)[1] if ":" in text else text)
+    if len(detail) > 200:
+        detail = detail[:200] + " ..."
+    return ValueError(
+        f"ckpt_path: {ckpt_path} holds weights of another model configuration ({detail}); "
+        "resume it with the experiment and model settings it was trained with"
+    )
+
+
+def report_interruption(trainer: Any, run_dir: Path | None) -> SystemExit:
+    """Print the one stderr line of a fit stopped by SIGTERM / SIGINT (what was saved and
+    how to resume) and return the ``SystemExit`` with the signal's shell status (143 /
+    130)."""
+    from sss2bathy.callbacks import interruption
+
+    what = interruption(trainer)
+    where = f"epoch {what.epoch}, step {what.step}"
+    if what.checkpoint is None:
+        saved = "no checkpoint was written (nothing to resume: a rerun starts over)"
+    elif what.saved_now:
+        saved = f"saved {what.checkpoint}"
+    else:
+        saved = f"the newest save {what.checkpoint} resumes it"
+    folder = run_dir if run_dir is not None else "<run folder>"
+    print(
+        f"interrupted by {what.signal} at {where}: {saved}; resume with the same command "
+        f"and ckpt_path=last hydra.run.dir={folder}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return SystemExit(what.exit_code)
 
 
 def _fresh_tensorboard_dirs(loggers: list) -> list[Path]:
@@ -175,14 +286,21 @@ def fit(
     """:func:`train`, also saying whether the datamodule had an MBES grid (``grid``; data
     modules without that attribute, the CNN's, always train on MBES). ``on_checked`` runs
     once every start-up check passed (the run instantiated), before any data is made."""
+    # the cross-key rules, then every constructor's own checks: all before any data is made
+    from sss2bathy.config_validation import validate_config
+
+    validate_config(cfg)
+    with run_folder_lock(run_dir):
+        return _fit(cfg, run_dir, on_checked)
+
+
+def _fit(cfg: DictConfig, run_dir: Path | None, on_checked: Callable[[], None] | None) -> FitResult:
     import pytorch_lightning as pl
+    from pytorch_lightning.utilities.exceptions import SIGTERMException
     from pytorch_lightning.utilities.model_helpers import is_overridden
 
     from sss2bathy.cli.instantiate import resolve_ckpt_path
-    from sss2bathy.config_validation import validate_config
 
-    # the cross-key rules, then every constructor's own checks: all before any data is made
-    validate_config(cfg)
     if cfg.get("torch_threads"):
         import torch
 
@@ -191,10 +309,11 @@ def fit(
     # modules draw batches from their own generators seeded by data.seed (= seed)
     pl.seed_everything(cfg.seed, workers=True)
     run = instantiate_run(cfg, run_dir)
-    if on_checked is not None:
-        on_checked()
     datamodule, model, trainer = run.datamodule, run.model, run.trainer
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
+    check_checkpoints(cfg, model, ckpt_path)
+    if on_checked is not None:
+        on_checked()
     metrics: dict[str, Any] = {}
     fresh_dirs = _fresh_tensorboard_dirs(run.loggers)
     try:
@@ -213,12 +332,20 @@ def fit(
                 verbose=False,  # callbacks.writers.MetricsTableLogger prints full names
             )
             metrics.update(trainer.callback_metrics)
-    except BaseException:
+    except BaseException as err:
         if trainer.global_step == 0:
             # failed before its first step (e.g. in the data module's setup): TensorBoard
             # would list an empty run; the run folder keeps its log
             for folder in fresh_dirs:
                 shutil.rmtree(folder, ignore_errors=True)
+        if isinstance(err, SIGTERMException):
+            # Lightning's graceful stop on SIGTERM (or LastCheckpoint's on SIGINT) ends
+            # with SystemExit(None), status 0: say what was saved, exit 143 / 130
+            raise report_interruption(trainer, run_dir) from None
+        if isinstance(err, RuntimeError):
+            mismatch = _state_dict_mismatch(err, ckpt_path)
+            if mismatch is not None:
+                raise mismatch from None
         raise
     final = getattr(model, "final_metrics", None)
     if isinstance(final, dict):

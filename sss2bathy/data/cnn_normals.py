@@ -64,7 +64,14 @@ from sss2bathy.data.windows import line_windows
 from sss2bathy.models.normal_cnn import channel_norm_copy
 from sss2bathy.survey import MASK_VALID, Survey
 from sss2bathy.utils.atomic import atomic_path, file_sha256, stable_hash
-from sss2bathy.utils.checkpoints import RUNS_PATTERNS, find_checkpoints, run_scale
+from sss2bathy.utils.checkpoints import (
+    KIND_CNN,
+    RUNS_PATTERNS,
+    expect_kind,
+    find_checkpoints,
+    read_checkpoint,
+    run_scale,
+)
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +194,7 @@ def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "c
     path = Path(ckpt_path)
     if not path.is_file():
         raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {path}")
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    ckpt = _checkpoint(path)
     config = (ckpt.get("hyper_parameters") or {}).get("net_config")
     if not isinstance(config, Mapping) or "_target_" not in config:
         raise ValueError(
@@ -210,7 +217,7 @@ def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "c
         if k.startswith("net.")
     }
     net.load_state_dict(state, strict=True)
-    return net.eval()
+    return net.to(map_location).eval()
 
 
 def check_precision(precision: str, key: str = "precision") -> str:
@@ -377,8 +384,15 @@ def _save_cached(path: Path, key: str, n_lat: np.ndarray, mask: np.ndarray) -> N
             np.savez_compressed(f, n_lat=n_lat, mask=mask, key=np.array(key))
 
 
-def _checkpoint(ckpt_path: str | Path) -> dict[str, Any]:
-    return torch.load(Path(ckpt_path), map_location="cpu", weights_only=True)
+def _checkpoint(ckpt_path: str | Path, key: str = "cnn_checkpoint") -> dict[str, Any]:
+    """A CNN checkpoint, loaded safely (``weights_only=True``, on the CPU). Anything else
+    (a SIREN or Lambert checkpoint, a truncated, foreign or code-carrying file) is one line
+    naming ``key``, the file and what it is
+    (:func:`~sss2bathy.utils.checkpoints.read_checkpoint`,
+    :func:`~sss2bathy.utils.checkpoints.expect_kind`)."""
+    ckpt = read_checkpoint(ckpt_path, key)
+    expect_kind(ckpt, ckpt_path, key, KIND_CNN)
+    return ckpt
 
 
 def checkpoint_window_config(ckpt_path: str | Path) -> dict[str, Any]:

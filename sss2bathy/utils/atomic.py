@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -139,3 +140,154 @@ def folder_digest_problems(folder: str | Path, name: str = FOLDER_DIGEST) -> lis
         elif file_sha256(path, length=64) != sha:
             problems.append(f"{rel}: content hash differs")
     return problems
+
+
+# ----------------------------------------------------------------------------- failures
+class WriteError(OSError):
+    """A file that could not be written (full disk, read-only or locked folder): its
+    message is one line naming the file, the reason and the free space."""
+
+    def __init__(self, message: str, errno_: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno_
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def free_space(path: str | Path) -> tuple[Path, int | None]:
+    """The nearest existing folder of ``path`` and the bytes free to a normal user there
+    (None when the OS cannot tell)."""
+    folder = Path(path)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if folder.is_file():
+        folder = folder.parent
+    try:
+        return folder, shutil.disk_usage(folder).free
+    except OSError:
+        return folder, None
+
+
+def write_error(path: str | Path, err: OSError, what: str = "file") -> WriteError:
+    """A :class:`WriteError` for ``path`` that failed with ``err``: the reason, the free
+    space of its folder, and that nothing partial was left (:func:`atomic_path` removed it;
+    an existing file under the name is the previous, complete one)."""
+    path = Path(path)
+    folder, free = free_space(path.parent)
+    reason = err.strerror or type(err).__name__
+    space = f"{format_bytes(free)} free in {folder}" if free is not None else "free space unknown"
+    kept = "; the previous file is unchanged" if path.is_file() else ""
+    return WriteError(
+        f"{what} {path}: not written ({reason}); {space}; nothing partial was left{kept}",
+        err.errno,
+    )
+
+
+# ----------------------------------------------------------------------------- run lock
+LOCK_NAME = "run.lock"
+
+
+class FolderLockedError(WriteError):
+    """Another live process holds the folder's :func:`folder_lock`."""
+
+
+def _lock_holder(text: str) -> dict[str, Any]:
+    try:
+        holder = json.loads(text)
+    except ValueError:
+        return {}
+    return holder if isinstance(holder, dict) else {}
+
+
+def _describe(holder: dict[str, Any]) -> str:
+    if not holder:
+        return "an unknown process"
+    where = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}"
+    return where + (f", since {holder['started']}" if holder.get("started") else "")
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | Path, name: str = LOCK_NAME) -> Iterator[Path]:
+    """Hold ``folder/name`` for the duration: an exclusive ``flock`` on a file that
+    names its holder (``{"pid", "host", "started"}``).
+
+    A folder whose lock a live process holds raises :class:`FolderLockedError` (one line:
+    who holds it). The OS releases the lock when its process ends, however it ends, so a
+    lock file left by a killed process is stale: it is taken over with a WARNING naming the
+    old holder. The file is removed on exit. Without ``fcntl`` (Windows) or on a file system
+    without locks nothing is locked (a WARNING says so).
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield Path(folder) / name
+        return
+    import datetime
+    import errno
+    import logging
+    import socket
+
+    log = logging.getLogger(__name__)
+    path = Path(folder) / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, default_file_mode())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _lock_holder(os.read(fd, 4096).decode(errors="replace"))
+            os.close(fd)
+            raise FolderLockedError(
+                f"{path.parent}: another run is writing this folder ({_describe(holder)}; "
+                f"lock {path}); wait for it to end or pick another folder (hydra.run.dir=)",
+                errno.EBUSY,
+            ) from None
+        except OSError as err:
+            os.close(fd)
+            fd = None
+            log.warning("%s: not locked (%s): the file system has no locks", path, err.strerror)
+            break
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the holder removed it while we waited: lock the new file
+    if fd is None:
+        yield path
+        return
+    try:
+        previous = _lock_holder(os.read(fd, 4096).decode(errors="replace"))
+        if previous:
+            log.warning(
+                "%s: taking over the stale lock of %s (that process has ended)",
+                path,
+                _describe(previous),
+            )
+        me = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started": datetime.datetime.now().isoformat(timespec="seconds"),
+        }
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps(me).encode())
+        os.fsync(fd)
+        yield path
+    finally:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+        os.close(fd)
