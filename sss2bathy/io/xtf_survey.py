@@ -34,7 +34,13 @@ from sss2bathy.io.grids import (
     read_grid,
     shift_grid,
 )
-from sss2bathy.io.xtf import MISSING_ATTITUDE, SENSOR_KEYS, read_xtf
+from sss2bathy.io.xtf import (
+    ALTITUDE_OFFSET,
+    MISSING_ATTITUDE,
+    NAV_UNITS,
+    SENSOR_KEYS,
+    read_xtf,
+)
 from sss2bathy.survey import BathyGrid, Survey, SurveyFormatError
 from sss2bathy.utils.atomic import (
     default_dir_mode,
@@ -64,7 +70,7 @@ __all__ = [
 ]
 
 # Bump when the import changes what it writes, so cached folders are rebuilt.
-IMPORT_VERSION = 3
+IMPORT_VERSION = 4
 
 DEFAULTS: dict[str, Any] = {
     "kind": "xtf",
@@ -89,13 +95,15 @@ DEFAULTS: dict[str, Any] = {
     "channel_pair": 0,
     "port_far_first": True,
     "max_jump_m": 200.0,
-    "max_speed_mps": 15.0,
+    "max_speed_mps": 10.0,
     "max_nav_gap_s": 30.0,
     "missing_attitude": "error",
     "min_first_return_m": 0.0,
     "blanking_m": 0.0,
     "auto_blanking": True,
     "altitude_tolerance_m": 1.0,
+    "altitude_offset": "record",
+    "nav_units": "file",
 }
 
 
@@ -225,7 +233,40 @@ _CHOICES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("mbes_statistic", STATISTICS),
     ("mbes_crs_mismatch", CRS_MISMATCH),
     ("missing_attitude", MISSING_ATTITUDE),
+    ("altitude_offset", ALTITUDE_OFFSET),
+    ("nav_units", NAV_UNITS),
 )
+
+
+def _sonar_settings(st: Mapping[str, Any]) -> dict[str, Any]:
+    """The recording settings of one imported file (from its ``read_xtf`` stats)."""
+    f = st.get("file_frequency_hz")
+    return {
+        "frequency_khz": None if f is None else round(float(f) / 1e3, 1),
+        "range_m": round(float(st["range_window_m"][1]), 1),
+        "samples_per_side": int(st["samples_per_side"]),
+    }
+
+
+def _check_one_sonar(stats: Mapping[str, Any], st: Mapping[str, Any]) -> None:
+    """Refuse a file recorded with another frequency, range or sample count than the survey's
+    first file (a survey holds one sonar setting; import the others as another survey)."""
+    firsts = [k for k in stats if not k.startswith("_")]
+    if not firsts:
+        return
+    ref, new = _sonar_settings(stats[firsts[0]]), _sonar_settings(st)
+    differ = []
+    for key, rel in (("frequency_khz", 0.05), ("range_m", 0.02), ("samples_per_side", 0.0)):
+        a, b = ref[key], new[key]
+        if a is not None and b is not None and abs(a - b) > rel * max(abs(a), abs(b)):
+            differ.append(key)
+    if differ:
+        raise ValueError(
+            f"data.survey.files: expected one sonar setting per survey, found "
+            f"{Path(stats[firsts[0]]['file']).name} {ref} and {Path(st['file']).name} {new} "
+            f"(differing {', '.join(differ)}; import them as separate surveys with their own "
+            "data.survey.name and data.survey.files)"
+        )
 
 
 def _cached_hash(folder: Path) -> str | None:
@@ -422,6 +463,8 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
             if merged["altitude_tolerance_m"] is None
             else float(merged["altitude_tolerance_m"])
         ),
+        "altitude_offset": str(merged["altitude_offset"]),
+        "nav_units": str(merged["nav_units"]),
     }
     sensor = {k: merged[k] for k in SENSOR_KEYS}
     origin: dict[str, Any] | None = None
@@ -440,6 +483,7 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
                 "frequency_hz": s.frequency_hz,
                 "sound_speed_mps": s.sound_speed_mps,
             }
+        _check_one_sonar(stats, st)
         lines.append(line)
         stats[line.name] = st
         log.info("survey '%s': read %s (%d pings)", merged["name"], path.name, line.n_pings)
