@@ -13,6 +13,7 @@ sides, so the ray-traced sidescan gives them bright faces and real shadows.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -356,6 +357,45 @@ def place_objects(
             name = obj.material or materials.boulder_material
             mat[rows, cols][prof > 0.05] = materials.index(name)
     return out
+
+
+def object_relief(
+    heights: np.ndarray,
+    cell: float,
+    obj: ObjectParams,
+    ring_m: tuple[float, float] = (2.0, 6.0),
+    top_quantile: float = 0.9,
+) -> float:
+    """How high ``obj`` stands above its surroundings in a height grid (m; NaN: no data).
+
+    ``heights`` is a grid ``(ny, nx)`` whose cell ``[0, 0]`` is centred at the origin (NaN:
+    unmapped). The object's top is the ``top_quantile`` of the heights over its footprint
+    (cells it covers by more than half); its surroundings are the median of the cells
+    ``ring_m`` (inner, outer) metres outside the footprint. The same number on the true grid
+    and on a map scores the map: the true value is ``height_m`` plus the seabed's own relief.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    grow = 2 * ring_m[1]
+    pad = dataclasses.replace(obj, length_m=obj.length_m + grow, beam_m=obj.beam_m + grow)
+    rows, cols, _ = object_cells(pad, heights.shape, cell, sub=1)
+    box = np.asarray(heights, dtype=np.float64)[rows, cols]
+    if box.size == 0:
+        return float("nan")
+    full = np.zeros(box.shape)
+    r0, c0 = rows.start, cols.start
+    r_obj, c_obj, prof = object_cells(obj, heights.shape, cell)
+    full[r_obj.start - r0 : r_obj.stop - r0, c_obj.start - c0 : c_obj.stop - c0] = prof
+    inside = full > 0.5 * obj.height_m
+    if not inside.any():
+        return float("nan")
+    dist = distance_transform_edt(~inside) * cell
+    ring = (dist >= ring_m[0]) & (dist <= ring_m[1])
+    top, around = box[inside], box[ring]
+    top, around = top[np.isfinite(top)], around[np.isfinite(around)]
+    if top.size < max(0.5 * inside.sum(), 1) or around.size < max(0.5 * ring.sum(), 1):
+        return float("nan")
+    return float(np.quantile(top, top_quantile) - np.median(around))
 
 
 def _power_law(rng: np.random.Generator, n: int, lo: float, hi: float, a: float) -> np.ndarray:
