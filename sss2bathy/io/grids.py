@@ -109,9 +109,10 @@ _MAGIC = (
 class SpikeFilter:
     """Spikes: valid cells more than ``threshold_m`` from the median of their
     ``window_cells`` x ``window_cells`` neighbourhood and, with ``spread_factor``, also more
-    than ``spread_factor`` robust standard deviations (1.4826 x the median absolute
-    deviation) of that neighbourhood, so that steep or rough terrain (a large local spread)
-    keeps its crests. ``key`` names the threshold's setting in the warning."""
+    than ``threshold_m`` and ``spread_factor`` robust standard deviations (1.4826 x the
+    median absolute deviation) from the local plane through the neighbourhood's other cells
+    (their spread about it): a spike on a steep slope is found, the crests of steep or rough
+    terrain are kept. ``key`` names the threshold's setting in the warning."""
 
     threshold_m: float
     window_cells: int = 5
@@ -356,8 +357,10 @@ def _untagged_nodata(z: np.ndarray, path: Path, info: dict | None, what: str = "
     if info is not None:
         info["untagged_nodata"] = n
     if n:
-        values = np.unique(z[bad])
-        shown = ", ".join(f"{v:g}" for v in values[:3]) + (", ..." if values.size > 3 else "")
+        values, counts = np.unique(z[bad], return_counts=True)
+        order = np.argsort(-counts, kind="stable")[:3]
+        shown = ", ".join(f"{values[i]:g} ({counts[i]})" for i in order)
+        shown += ", ..." if values.size > 3 else ""
         log.warning(
             "%s: %d %s (%.1f %% of those with values) hold %s, not tagged as no-data: "
             "treated as no-data",
@@ -385,6 +388,43 @@ def _window_median(h: np.ndarray, window_cells: int) -> np.ndarray:
     return median
 
 
+def _plane_residuals(
+    h: np.ndarray, iy: np.ndarray, ix: np.ndarray, window_cells: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """For the cells ``(iy, ix)``: ``(residual, mad)``, the cell's height above the plane
+    through the other valid cells of its window (least squares, refitted once without the
+    cells beyond 3 robust standard deviations: other spikes), taken from the median of
+    their residuals, and the median absolute deviation of those residuals. Windows with
+    fewer than 6 other valid cells use a flat plane at their median."""
+    w, half, k = window_cells, window_cells // 2, window_cells * window_cells
+    padded = np.pad(h, half, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(padded, (w, w))[iy, ix].reshape(iy.size, k)
+    win = win.astype(np.float64)  # a copy: the centre is taken out below
+    centre = win[:, k // 2].copy()
+    win[:, k // 2] = np.nan
+    dy, dx = np.mgrid[-half : half + 1, -half : half + 1]
+    design = np.stack([np.ones(k), dx.ravel(), dy.ravel()], axis=1)  # (k, 3)
+    valid = np.isfinite(win).astype(np.float64)
+    weights = valid
+    z0 = np.where(valid > 0, win, 0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: NaN statistics
+        for refit in (False, True):
+            ata = np.einsum("nk,ki,kj->nij", weights, design, design)
+            atz = np.einsum("nk,ki,nk->ni", weights, design, z0)
+            coef = np.zeros((iy.size, 3))
+            coef[:, 0] = np.nanmedian(np.where(weights > 0, win, np.nan), axis=1)
+            ok = (weights.sum(1) >= 6) & (np.abs(np.linalg.det(ata)) > 1e-9)
+            if ok.any():
+                coef[ok] = np.linalg.solve(ata[ok], atz[ok][..., None])[..., 0]
+            res = np.where(valid > 0, win - coef @ design.T, np.nan)
+            med = np.nanmedian(res, axis=1)
+            mad = np.nanmedian(np.abs(res - med[:, None]), axis=1)
+            if not refit:
+                weights = valid * (np.abs(res - med[:, None]) <= 3 * 1.4826 * mad[:, None] + 1e-6)
+    return centre - coef[:, 0] - med, mad
+
+
 def _spikes(
     h: np.ndarray, threshold_m: float, window_cells: int, spread_factor: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -394,16 +434,13 @@ def _spikes(
         deviation = np.abs(h - median)
         mask = np.isfinite(h) & (deviation > threshold_m)
     if spread_factor is not None and mask.any():
-        half = window_cells // 2
-        padded = np.pad(h, half, constant_values=np.nan)
-        windows = np.lib.stride_tricks.sliding_window_view(padded, (window_cells, window_cells))
-        iy, ix = np.nonzero(mask)
-        cand = windows[iy, ix].reshape(iy.size, -1)  # only the candidates: few cells
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            mad = np.nanmedian(np.abs(cand - median[iy, ix, None]), axis=1)
-        keep = deviation[iy, ix] <= spread_factor * 1.4826 * mad
-        mask[iy[keep], ix[keep]] = False
+        iy, ix = np.nonzero(mask)  # only the candidates: few cells
+        residual, mad = _plane_residuals(h, iy, ix, window_cells)
+        with np.errstate(invalid="ignore"):
+            spike = (np.abs(residual) > threshold_m) & (
+                np.abs(residual) > spread_factor * 1.4826 * mad
+            )
+        mask[iy[~spike], ix[~spike]] = False
     return mask, deviation
 
 
@@ -417,7 +454,7 @@ def spike_mask(
     ``window_cells`` x ``window_cells`` neighbourhood (valid cells only; the grid's edge
     and no-data do not count). Real grids carry such outliers (fliers, injected spikes).
     With ``spread_factor`` a cell must also lie that many robust standard deviations
-    (1.4826 x MAD) of its neighbourhood away (see :class:`SpikeFilter`).
+    (1.4826 x MAD) from its neighbourhood's local plane (see :class:`SpikeFilter`).
 
     >>> h = np.zeros((7, 7)); h[3, 3] = 5.0
     >>> np.argwhere(spike_mask(h, 1.0)).tolist()
@@ -455,7 +492,7 @@ def _despike(h: np.ndarray, path: Path, spikes: SpikeFilter | None, info: dict |
     rule = f"more than {spikes.threshold_m:g} m from the median of their {spikes.window_cells}"
     rule += f"x{spikes.window_cells} cells"
     if spikes.spread_factor is not None:
-        rule += f" and {spikes.spread_factor:g} times its robust spread"
+        rule += f" and {spikes.spread_factor:g} robust SDs from their local plane"
     log.warning(
         "%s: %d spike cells (%.2f %% of %d valid) set to no-data: %s; largest deviation "
         "%.2f m, median %.2f m (%s: null keeps them)%s",

@@ -345,13 +345,15 @@ def _check_grid_vertical(grid: BathyGrid, lines: list, path: Path, z_positive: s
     if ok.sum() >= 10:
         above = float((under[ok] > pos[ok, 2]).mean())
         if above > 0.5:
+            median = float(np.median(under[ok]))
+            cause = f"depths read as heights? {hint}" if median > 0 else "another vertical datum?"
             raise SurveyFormatError(
                 path,
                 "heights",
-                "the seabed below the vehicle at the pings over the grid",
+                "the seabed below the vehicle at the pings over the grid (one vertical frame: "
+                "heights up from the datum the vehicle depth is measured from)",
                 f"the grid above it at {100 * above:.0f}% of {int(ok.sum())} pings (grid median "
-                f"{np.median(under[ok]):.2f} m, vehicle median {np.median(pos[ok, 2]):.2f} m): "
-                f"depths read as heights ({hint}) or another vertical datum?",
+                f"{median:.2f} m, vehicle median {np.median(pos[ok, 2]):.2f} m): {cause}",
             )
 
 
