@@ -12,6 +12,7 @@ from omegaconf import OmegaConf, open_dict
 
 from sss2bathy.cli.train import instantiate_run
 from sss2bathy.config_validation import ConfigError, validate_config
+from tests.conftest import skip_unless_survey_files
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -82,6 +83,7 @@ def test_experiment_composes_and_validates(experiment, scale):
     assert resolved["task_name"] == experiment
     assert "_target_" in resolved["data"] and "_target_" in resolved["model"]
     assert resolved["trainer"]["max_epochs"] >= 1
+    skip_unless_survey_files(cfg)
     validate_config(cfg)
 
 

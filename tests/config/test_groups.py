@@ -18,6 +18,7 @@ from omegaconf import OmegaConf, open_dict
 
 from sss2bathy.cli.train import instantiate_run
 from sss2bathy.config_validation import validate_config
+from tests.conftest import skip_unless_survey_files
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUPS = sorted(
@@ -107,6 +108,7 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path, monkeyp
         value = cfg[key]  # a leaf resolves on access
         if key != "hydra" and OmegaConf.is_config(value):
             OmegaConf.to_container(value, resolve=True)
+    skip_unless_survey_files(cfg)
     validate_config(cfg)
     _loggers_importable(cfg)
     run = instantiate_run(cfg, tmp_path)
