@@ -770,7 +770,7 @@ def read_xtf(
     channel_pair: int = 0,
     port_far_first: bool = True,
     max_jump_m: float = 200.0,
-    max_speed_mps: float = 15.0,
+    max_speed_mps: float = 10.0,
     max_nav_gap_s: float = 30.0,
     missing_attitude: str = "error",
     min_first_return_m: float = 0.0,

@@ -209,29 +209,43 @@ def implausible_altitude(
     """``(P,)`` masks of altimeter values to reject (among ``ok``).
 
     * ``beyond_range``: above the recording's slant range (the seabed would not be in it);
-    * ``jump``: farther than ``max(6 sigma, floor_m)`` from the running median of ``window``
-      neighbouring altimeter values (sigma: the robust spread of those deviations) and, where
-      the ping has a first return, farther than ``max(4 model sigma, floor_m)`` from the value
-      the first return implies (:meth:`AltimeterCheck.expected_altimeter`); without a first
-      return (or a check) the jump must exceed ``3 floor_m``.
+    * ``jump``, where the ping has a first return: runs of pings whose altimeter minus the
+      value the first return implies (:meth:`AltimeterCheck.expected_altimeter`; the seabed's
+      relief cancels) leaves the running median of ``window`` pings by more than
+      ``max(4 sigma, floor_m)`` (sigma: the robust spread of those deviations), and at whose
+      edges the altimeter steps more than the first return does (else the detector jumped,
+      not the altimeter); without a first return (or a check), farther than
+      ``max(4 sigma, 3 floor_m)`` from the running median of the altimeter itself.
     """
     alt = np.asarray(altitude_m, np.float64)
     fr = np.asarray(first_return_m, np.float64)
     ok = np.asarray(ok, bool)
     beyond = ok & (alt > max_range_m)
     rest = ok & ~beyond
-    dev = alt - _running_median(alt, rest, window)
-    limit = max(6.0 * robust_sigma(dev[rest]), floor_m)
-    jump = rest & (np.abs(dev) > limit)
-    if check is not None:
+    jump = np.zeros_like(rest)
+    with_fr = rest & np.isfinite(fr) if check is not None else np.zeros_like(rest)
+    alone = rest & ~with_fr
+    if alone.any():
+        dev = alt - _running_median(alt, rest, window)
+        limit = max(4.0 * robust_sigma(dev[rest]), 3.0 * floor_m)
+        jump |= alone & (np.abs(dev) > limit)
+    idx = np.flatnonzero(with_fr)
+    if idx.size >= 3:
         expected = check.expected_altimeter(fr)
-        off = np.abs(alt - expected) > max(4.0 * check.model_sigma_m, floor_m)
-        has_fr = np.isfinite(fr)
-    else:
-        off = np.zeros_like(jump)
-        has_fr = np.zeros_like(jump)
-    big = np.abs(dev) > max(limit, 3.0 * floor_m)
-    jump &= np.where(has_fr, off, big)
+        res = (alt - expected)[idx]
+        dev = res - median_filter(
+            res, size=min(window, 2 * ((idx.size - 1) // 2) + 1), mode="nearest"
+        )
+        flag = np.abs(dev) > max(4.0 * robust_sigma(dev), floor_m)
+        for a, b in runs(flag):
+            edges = [(a - 1, a)] if a > 0 else []
+            edges += [(b, b + 1)] if b < idx.size - 1 else []
+            if not edges:
+                continue
+            step_alt = sum(abs(alt[idx[i]] - alt[idx[j]]) for i, j in edges)
+            step_fr = sum(abs(expected[idx[i]] - expected[idx[j]]) for i, j in edges)
+            if step_alt > step_fr:
+                jump[idx[a : b + 1]] = True
     return {"beyond_range": beyond, "jump": jump}
 
 

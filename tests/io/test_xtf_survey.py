@@ -161,3 +161,16 @@ def test_resolve_splits_patterns_keep_survey_order():
         "y": ["a1", "a2"],
     }
     assert resolve_splits(None, names) == {"test": names}
+
+
+def test_files_of_two_sonar_settings_are_refused(tmp_path, make_line, origin):
+    folder = tmp_path / "raw"
+    write_xtf(make_line("A", n_pings=40, n_bins=64), folder / "A.xtf", origin)
+    write_xtf(make_line("B", n_pings=40, n_bins=128, seed=1), folder / "B.xtf", origin)
+    with pytest.raises(ValueError) as err:
+        prepare_xtf_survey(config(folder), tmp_path / "data")
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("data.survey.files: expected one sonar setting")
+    assert "A.xtf {'frequency_khz': 400.0, 'range_m': 40.0, 'samples_per_side': 64}" in msg
+    assert "B.xtf {'frequency_khz': 400.0, 'range_m': 40.0, 'samples_per_side': 128}" in msg
+    assert "differing samples_per_side" in msg and "separate surveys" in msg
