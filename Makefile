@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
 
 # The default tier on every core (at most 4 workers; each test file stays on one worker, so a
-# file's fixtures are built once): 278 / 339 s (two runs) against 531 s serial on 2 cores (session 14).
+# file's fixtures are built once): about half the serial time on 2 cores (docs/performance_log.md).
 # PYTEST_WORKERS=0 runs it serially, in one process.
 PYTEST_WORKERS ?= auto
 test: install ## Run the default (fast) test tier, on every core (PYTEST_WORKERS=0: serially)
@@ -86,7 +86,7 @@ map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> ma
 	$(BIN)/python -m sss2bathy.cli.map 'files=$(XTF)' scale=$(SCALE) $(if $(CKPT),'cnn_checkpoint=$(CKPT)') $(ARGS)
 
 .PHONY: xtf-study
-xtf-study: install ## Issue 16 targets on generated AUV XTF surveys (no MBES): held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
+xtf-study: install ## Generated AUV XTF surveys without MBES: held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
 	OMP_NUM_THREADS=1 $(BIN)/python -m sss2bathy.eval.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
 
 d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
@@ -167,18 +167,18 @@ learning-curve: install ## CNN test MAE vs training lines / time, one survey, fi
 		--torch-threads $${TORCH_THREADS:-1} --out outputs/learning_curve $(ARGS)
 
 .PHONY: real1m-figure real1m
-real1m-figure: install ## Issue 19: the synthetic_real_1m survey (real 1 m MBES grid as terrain) + hillshade/waterfall figure -> outputs/figures/synthetic_real_1m.png
+real1m-figure: install ## The synthetic_real_1m survey (real 1 m MBES grid as terrain) + hillshade/waterfall figure -> outputs/figures/synthetic_real_1m.png
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_real_1m scale=$(SCALE) $(ARGS)
 	$(BIN)/python -m sss2bathy.sim.real_figure data/synthetic_real_1m_$(SCALE) outputs/figures/synthetic_real_1m.png
 
-real1m: install ## Issue 19 targets on the real 1 m grid: SIREN GT-N2d, CNN-N2d, Lambert, heights-only, one fit at a time (CNN-N2d needs a CNN run)
+real1m: install ## The real 1 m grid survey: SIREN GT-N2d, CNN-N2d, Lambert, heights-only, one fit at a time (CNN-N2d needs a CNN run)
 	for e in gt_n2d cnn_n2d lambert heights_only; do \
 		$(BIN)/sss2bathy-train experiment=real1m_siren_$$e scale=$(SCALE) torch_threads=1 $(ARGS) || exit 1; \
 	done
 
 .PHONY: paper-cpu-study
 BUDGET ?= 20
-paper-cpu-study: install ## Issue 20: paper-scale d1 prepared once, SIREN-GT-N2d and Lambert at the paper and budget schedules, BUDGET min each -> outputs/paper_cpu_study/
+paper-cpu-study: install ## Paper-scale d1 on a CPU: prepared once, SIREN-GT-N2d and Lambert at the paper and budget schedules, BUDGET min each -> outputs/paper_cpu_study/
 	$(BIN)/python -m sss2bathy.eval.paper_cpu_study --scale paper --budget-min $(BUDGET) $(ARGS)
 
 tb: install ## TensorBoard on outputs/
