@@ -208,7 +208,12 @@ def _north_up_to_grid(
 ) -> BathyGrid:
     """North-up raster + affine (square, unrotated) -> BathyGrid (row 0 south)."""
     if transform.b != 0 or transform.d != 0:
-        raise SurveyFormatError(path, "transform", "an unrotated grid", transform)
+        raise SurveyFormatError(
+            path,
+            "transform",
+            "an unrotated grid (or a CRS, in the file or target_crs, to resample it in)",
+            f"a rotated geotransform (a, b, c, d, e, f) = {tuple(round(v, 6) for v in transform[:6])}",
+        )
     ny = data.shape[0]
     cell = abs(transform.a)
     if transform.e < 0:
@@ -232,15 +237,15 @@ def _warp(
     dst_crs: Any,
     cell_size: float | None,
 ) -> tuple[np.ndarray, Any]:
-    """Reproject / resample a north-up float raster (NaN no-data) to square ``cell_size``."""
-    from rasterio.transform import array_bounds
+    """Reproject / resample a float raster (NaN no-data; rotated too) to a north-up one of
+    square ``cell_size`` cells."""
     from rasterio.warp import Resampling, calculate_default_transform, reproject
 
     h, w = data.shape
-    x_a, y_a, x_b, y_b = array_bounds(h, w, transform)
-    west, east = min(x_a, x_b), max(x_a, x_b)
-    south, north = min(y_a, y_b), max(y_a, y_b)
-    res = cell_size or abs(transform.a)  # keep the source cell size unless told otherwise
+    xs, ys = zip(*(transform @ corner for corner in ((0, 0), (w, 0), (0, h), (w, h))), strict=True)
+    west, east, south, north = min(xs), max(xs), min(ys), max(ys)
+    # keep the source cell size unless told otherwise
+    res = cell_size or math.hypot(transform.a, transform.d)
     dst_transform, dw, dh = calculate_default_transform(
         src_crs, dst_crs, w, h, west, south, east, north, resolution=res
     )
@@ -299,38 +304,47 @@ def _finish_raster(
         raise SurveyFormatError(
             path, "crs", "a projected CRS in metres (give target_crs)", _crs_name(dst)
         )
-    square = math.isclose(abs(transform.a), abs(transform.e), rel_tol=1e-6)
+    size_x, size_y = math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e)
+    square = math.isclose(size_x, size_y, rel_tol=1e-6)
+    rotated = transform.b != 0 or transform.d != 0
     if not square:
-        finer = min(abs(transform.a), abs(transform.e))
-        cell_size = cell_size or finer
+        cell_size = cell_size or min(size_x, size_y)
         if crs is not None:
             log.warning(
                 "%s: cells of %g m (x) by %g m (y) are not square; resampled bilinearly to "
                 "square %g m cells (%d x %d cells -> about %d x %d)",
                 path,
-                abs(transform.a),
-                abs(transform.e),
+                size_x,
+                size_y,
                 cell_size,
                 h,
                 w,
-                round(h * abs(transform.e) / cell_size),
-                round(w * abs(transform.a) / cell_size),
+                round(h * size_y / cell_size),
+                round(w * size_x / cell_size),
             )
+    if rotated and crs is not None:
+        log.warning(
+            "%s: the grid is rotated by %.2f degrees; resampled bilinearly to a north-up grid "
+            "(%d x %d cells)",
+            path,
+            math.degrees(math.atan2(transform.d, transform.a)),
+            h,
+            w,
+        )
     same_cell = cell_size is None or math.isclose(abs(transform.a), cell_size, rel_tol=1e-9)
     if (
         crs is not None
         and dst is not None
-        and (not crs_equivalent(crs, dst, cx, cy) or not square or not same_cell)
+        and (not crs_equivalent(crs, dst, cx, cy) or not square or not same_cell or rotated)
     ):
         data, transform = _warp(data, transform, crs, dst, cell_size)
-    elif not (square and same_cell):
+    elif not (square and same_cell) and not rotated:
         if crs is None:
             raise SurveyFormatError(
                 path,
                 "transform",
                 "square cells (or a CRS to resample them in)",
-                f"cells of {abs(transform.a):g} m by {abs(transform.e):g} m (wanted "
-                f"{cell_size:g} m square) and no CRS",
+                f"cells of {size_x:g} m by {size_y:g} m (wanted {cell_size:g} m square) and no CRS",
             )
         data, transform = _warp(data, transform, crs, crs, cell_size)
     return _north_up_to_grid(data, transform, dst, path, cell_size)

@@ -38,7 +38,9 @@ def write_tif(path: Path, data: np.ndarray, *, crs=CRS, nodata=None, cell=(1.0, 
     ny, nx = data.shape
     profile = {"driver": "GTiff", "height": ny, "width": nx, "count": 1, "dtype": data.dtype.name}
     profile.update(crs=crs, nodata=nodata, **kw)
-    profile["transform"] = from_origin(500000.0, 6500000.0 + ny * cell[1], cell[0], cell[1])
+    profile.setdefault(
+        "transform", from_origin(500000.0, 6500000.0 + ny * cell[1], cell[0], cell[1])
+    )
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(data, 1)
     return path
@@ -229,6 +231,41 @@ def test_non_square_cells_are_resampled_with_a_warning(tmp_path, caplog):
     nocrs = write_tif(tmp_path / "rect_local.tif", plane, crs=None, cell=(1.0, 2.0))
     err = refused(nocrs)
     assert err.field == "transform" and "cells of 1 m by 2 m" in str(err.found)
+
+
+def test_rotated_grid_is_resampled_north_up_or_refused_without_crs(tmp_path, caplog):
+    from affine import Affine
+
+    ny, nx = 30, 40
+    yy, xx = np.mgrid[0:ny, 0:nx] + 0.5
+    angle = np.radians(20.0)
+    c, s = np.cos(angle), np.sin(angle)
+    rot = Affine(c, -s, 500000.0, -s, -c, 6500000.0)  # rows run south-east, columns east-north
+    ex, nn = rot.c + rot.a * xx + rot.b * yy, rot.f + rot.d * xx + rot.e * yy
+    plane = (-30.0 + 0.01 * (ex - 500000.0) + 0.02 * (nn - 6500000.0)).astype(np.float32)
+    path = write_tif(tmp_path / "rotated.tif", plane, transform=rot)
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.io.grids"):
+        g = read_grid(path)
+    assert "rotated by -20.00 degrees; resampled bilinearly to a north-up grid" in caplog.text
+    assert g.cell_size == pytest.approx(1.0)
+    # The area is kept (within a cell row around the edge) and the plane is reproduced.
+    assert abs(np.isfinite(g.heights).sum() - ny * nx) < 2 * (ny + nx)
+    gx, gy = np.meshgrid(g.x, g.y)
+    want = -30.0 + 0.01 * (gx - 500000.0) + 0.02 * (gy - 6500000.0)
+    ok = np.isfinite(g.heights)
+    assert np.median(np.abs(g.heights[ok] - want[ok])) < 1e-3
+    path = write_tif(tmp_path / "rotated_local.tif", plane, transform=rot, crs=None)
+    err = refused(path)
+    assert err.field == "transform" and str(err.found).startswith("a rotated geotransform")
+    assert read_grid(path, target_crs=CRS).shape == g.shape  # a target CRS to resample in
+
+
+def test_truncated_ascii_grid_is_one_line(tmp_path):
+    header = "ncols 3\nnrows 4\nxllcorner 1000\nyllcorner 2000\ncellsize 2\nNODATA_value -9999\n"
+    (tmp_path / "short.asc").write_text(header + "-1 -2 -3\n-4 -5\n")
+    err = refused(tmp_path / "short.asc")
+    assert err.field == "band 1" and err.expected == "all 3 x 4 cells readable"
+    assert "text of" in str(err.found) and "File short" in str(err.found)
 
 
 def test_depths_read_as_heights_for_rasters_with_z_positive_down(tmp_path):
