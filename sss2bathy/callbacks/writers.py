@@ -5,7 +5,9 @@
 * :class:`SirenMapExport`: at the end of a SIREN's training, the final map (``map.tif``,
   ``map.npz``, ``metrics.json``, PNGs; :func:`sss2bathy.eval.maps.save_map_outputs`); its
   metrics are the module's ``final_metrics``, which :class:`~sss2bathy.callbacks.RunHparams`
-  logs with the hparams.
+  logs with the hparams. ``map.tif`` carries its provenance as GDAL metadata
+  (:func:`map_provenance`: units, vertical reference, method, CNN checkpoint SHA-256,
+  version, command line).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
+from sss2bathy.callbacks.hparams import RunHparams
 from sss2bathy.eval.cnn_table import (
     SIDES,
     constant_metric_keys,
@@ -28,6 +31,7 @@ from sss2bathy.eval.cnn_table import (
     write_cnn_table,
 )
 from sss2bathy.eval.maps import save_map_outputs
+from sss2bathy.io.export import add_geotiff_tags, provenance_tags
 from sss2bathy.metrics.normal import LineSideBias, NormalMetrics, masked_mean
 from sss2bathy.utils.atomic import atomic_write_text
 
@@ -224,10 +228,58 @@ class SirenMapExport(pl.Callback):
             altimeter_xy=None if alt is None else alt[:, :2].cpu().numpy(),
             coverage=final.coverage,
         )
+        add_geotiff_tags(self.paths["map_tif"], map_provenance(trainer))
         if offsets is not None:
             names = list(getattr(trainer.datamodule, "line_names", None) or [])
             self.paths["line_offsets"] = write_line_offsets(offsets, names, self.folder(trainer))
         log.info("SIREN map written to %s (%s)", self.paths["map_tif"], dict(final.metrics))
+
+
+def run_experiment(trainer: pl.Trainer) -> str | None:
+    """The fit's experiment (method) name: the ``run.experiment`` of its
+    :class:`~sss2bathy.callbacks.RunHparams` (the config's ``task_name``), else the Hydra
+    job's ``experiment`` choice, else None."""
+    for callback in getattr(trainer, "callbacks", None) or []:
+        if isinstance(callback, RunHparams) and callback.run.get("experiment"):
+            return str(callback.run["experiment"])
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        choice = HydraConfig.get().runtime.choices.get("experiment")
+        return str(choice) if choice else None
+    except ValueError:  # not under a Hydra job
+        return None
+
+
+def cnn_checkpoint_of(datamodule: Any) -> Path | None:
+    """The CNN checkpoint a datamodule's normals come from (``normals="cnn"``; ``latest``
+    resolved as it resolves it), else None."""
+    if datamodule is None or getattr(datamodule, "normals", None) != "cnn":
+        return None
+    ckpt = getattr(datamodule, "cnn_checkpoint", None)
+    if not ckpt:
+        return None
+    if str(ckpt) == "latest":
+        from sss2bathy.data.cnn_normals import latest_checkpoint
+
+        return Path(latest_checkpoint(datamodule.cnn_runs_dir, datamodule.cnn_scale))
+    return Path(str(ckpt))
+
+
+def map_provenance(trainer: pl.Trainer) -> dict[str, str]:
+    """``map.tif``'s provenance tags (:func:`sss2bathy.io.export.provenance_tags`): the
+    method (:func:`run_experiment`), the CNN checkpoint and its SHA-256 when the normals came
+    from one, and the vertical reference of the survey's kind (``xtf``: the sea surface
+    through the vehicle depth)."""
+    datamodule = getattr(trainer, "datamodule", None)
+    survey = getattr(datamodule, "survey_cfg", None) or {}
+    kind = survey.get("kind") if isinstance(survey, Mapping) else None
+    ckpt = cnn_checkpoint_of(datamodule)
+    return provenance_tags(
+        method=run_experiment(trainer),
+        cnn_checkpoint=ckpt if ckpt is not None and ckpt.is_file() else None,
+        survey_kind=None if kind is None else str(kind),
+    )
 
 
 def _line_offsets(pl_module: pl.LightningModule) -> np.ndarray | None:
