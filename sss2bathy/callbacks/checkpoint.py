@@ -96,7 +96,7 @@ class Interruption:
     epoch: int
     step: int
     checkpoint: Path | None  # the newest save (None: none was ever written)
-    saved_now: bool  # written on the signal (False: an earlier periodic save)
+    saved_now: bool  # holds the state the fit stopped at (False: an earlier save)
 
     @property
     def exit_code(self) -> int:
@@ -255,7 +255,6 @@ class LastCheckpoint(ModelCheckpoint):
         if self.interruption is not None:  # saved at the batch end already
             return
         mid_validation = trainer.validating and not trainer.sanity_checking
-        saved = False
         if (
             self.save_on_signal
             and trainer.state.fn == "fit"
@@ -265,8 +264,9 @@ class LastCheckpoint(ModelCheckpoint):
             and not self._saved_at_this_step(trainer)
         ):
             self._save_last(trainer)
-            saved = True
-        self._record(trainer, saved_now=saved)
+        # "saved" when last.ckpt holds the state the fit stopped at (this save or a
+        # periodic one at this step, e.g. the epoch end the signal waited for)
+        self._record(trainer, saved_now=self._saved_at_this_step(trainer))
 
     def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
         self._restore_sigint()

@@ -1,5 +1,9 @@
 """Resume: a fit stopped mid-epoch (or at an epoch end) and resumed from last.ckpt ends
-exactly as the uninterrupted fit: weights, optimizer and metrics equal bit for bit."""
+exactly as the uninterrupted fit: weights, optimizer and metrics equal bit for bit.
+
+The default callbacks (``conf/callbacks/default.yaml``: last.ckpt every epoch and every 500
+steps, no test-only intervals) are what a killed run resumes from; SIGTERM saves last.ckpt
+at the next batch end and exits 143 with the resume command on stderr."""
 
 from __future__ import annotations
 
@@ -27,6 +31,18 @@ from sss2bathy.data.windows import FlipShuffleSampler, ResumableDataLoader
 TOLERANCE = 1e-6
 
 
+class KillAtEpoch(pl.Callback):
+    """Stops the fit as SIGKILL would at the start of epoch ``at``: nothing is saved on
+    the way out (only what the periodic saves wrote before stands)."""
+
+    def __init__(self, at: int) -> None:
+        self.at = at
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        if trainer.current_epoch == self.at:
+            raise KeyboardInterrupt(f"killed at epoch {self.at}")
+
+
 class Interrupt(pl.Callback):
     """Stops the fit right after optimizer step ``at`` (as a kill would, minus the kill)."""
 
@@ -38,14 +54,13 @@ class Interrupt(pl.Callback):
             raise KeyboardInterrupt(f"interrupted at step {self.at}")
 
 
-def _run(overrides, run_dir: Path, monkeypatch=None, interrupt_at=None) -> dict:
+def _run(overrides, run_dir: Path, monkeypatch=None, interrupt_at=None, kill_at_epoch=None):
     cfg = compose_run(overrides, run_dir)
-    if interrupt_at is not None:
+    if interrupt_at is not None or kill_at_epoch is not None:
+        stop = Interrupt(interrupt_at) if interrupt_at is not None else KillAtEpoch(kill_at_epoch)
         original = instantiate_module.instantiate_callbacks
         monkeypatch.setattr(
-            instantiate_module,
-            "instantiate_callbacks",
-            lambda c: original(c) + [Interrupt(interrupt_at)],
+            instantiate_module, "instantiate_callbacks", lambda c: original(c) + [stop]
         )
         with pytest.raises(SystemExit):  # Lightning's graceful shutdown of the interrupt
             train(cfg, run_dir)
@@ -129,6 +144,14 @@ def test_resolve_ckpt_path(tmp_path, caplog):
     os.utime(hpc, (time.time() + 10, time.time() + 10))
     assert resolve_ckpt_path("last", run) == str(hpc)  # the newer: Lightning's SLURM save
     assert resolve_ckpt_path(str(last), None) == str(last)
+    # a folder without last.ckpt (a run killed before it had one, e.g. with only the CNN's
+    # best-epoch save): its newest checkpoint
+    other = tmp_path / "other"
+    (other / "checkpoints").mkdir(parents=True)
+    for i, name in enumerate(["epoch_0000.ckpt", "epoch_0001.ckpt"]):
+        (other / "checkpoints" / name).write_bytes(b"x")
+        os.utime(other / "checkpoints" / name, (time.time() + i, time.time() + i))
+    assert resolve_ckpt_path("last", other) == str(other / "checkpoints" / "epoch_0001.ckpt")
     with pytest.raises(FileNotFoundError, match="ckpt_path"):
         resolve_ckpt_path(str(tmp_path / "nope.ckpt"), run)
     with pytest.raises(FileNotFoundError, match="ckpt_path"):
@@ -136,6 +159,59 @@ def test_resolve_ckpt_path(tmp_path, caplog):
 
 
 # ------------------------------------------------------------------ whole fits
+def _task_overrides(task: str, plane_survey: Path, hills_survey: Path, tmp: Path) -> list[str]:
+    """A tiny fit of ``task`` with the DEFAULT checkpoint callbacks (nothing test-only)."""
+    if task == "cnn":
+        return cnn_overrides(hills_survey, tmp)
+    overrides = siren_overrides(plane_survey, tmp)
+    if task == "lambert":
+        overrides[0] = "experiment=siren_lambert"
+    return overrides
+
+
+@pytest.mark.parametrize("task", ["siren", "cnn", "lambert"])
+def test_fit_killed_after_an_epoch_resumes_from_that_epoch_with_the_default_callbacks(
+    tmp_path, plane_survey, hills_survey, monkeypatch, caplog, task
+):
+    # killed (nothing saved on the way out) at the start of epoch 2 of 3: the epoch-end save
+    # of epoch 1 is there whatever save_top_k, and the resumed fit starts at epoch 2
+    base = _task_overrides(task, plane_survey, hills_survey, tmp_path)
+    base.append("trainer.max_epochs=3")
+    full, part = tmp_path / "full", tmp_path / "part"
+    maps = {d: [f"model.output_dir={d / 'map'}"] if task != "cnn" else [] for d in (full, part)}
+    m_full = _run(base + maps[full], full)
+    _run(base + maps[part], part, monkeypatch, kill_at_epoch=2)
+    last = part / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=True)["epoch"] == 1
+    caplog.clear()
+    with caplog.at_level("INFO", logger="sss2bathy.train"):
+        m_part = _run(base + maps[part] + ["ckpt_path=last"], part)
+    assert f"resuming from {last} at epoch 2 (step " in caplog.text
+    _assert_same_run(full, part, m_full, m_part)
+    if task != "cnn":
+        final = [json.loads((d / "map" / "metrics.json").read_text()) for d in (full, part)]
+        assert final[0] == final[1]
+
+
+@pytest.mark.slow
+def test_cnn_folder_with_only_its_best_epoch_checkpoint_resumes_from_it(
+    tmp_path, hills_survey, monkeypatch, caplog
+):
+    """A CNN run folder from before last.ckpt was written every epoch: ``ckpt_path=last``
+    takes ``epoch_NNNN.ckpt`` (the best-epoch save) and goes on after that epoch."""
+    base = cnn_overrides(hills_survey, tmp_path) + ["trainer.max_epochs=3"]
+    full, part = tmp_path / "full", tmp_path / "part"
+    m_full = _run(base, full)
+    _run(base, part, monkeypatch, kill_at_epoch=2)
+    (part / "checkpoints" / "last.ckpt").unlink()
+    (best,) = (part / "checkpoints").glob("epoch_*.ckpt")
+    epoch = torch.load(best, weights_only=True)["epoch"]  # saved at that epoch's end
+    with caplog.at_level("INFO", logger="sss2bathy.train"):
+        m_part = _run(base + ["ckpt_path=last"], part)
+    assert f"resuming from {best} at epoch {epoch + 1}" in caplog.text
+    _assert_same_run(full, part, m_full, m_part)
+
+
 def test_siren_fit_interrupted_mid_epoch_resumes_exactly(tmp_path, plane_survey, monkeypatch):
     # 5 steps per epoch, 3 epochs; last.ckpt every 2 steps: interrupted at step 7, the fit
     # resumes from step 6 (epoch 1, batch 1), warm-start cache and data order included
@@ -175,45 +251,121 @@ def test_cnn_fit_with_dropout_resumes_exactly_from_another_run_folder(
 
 
 # ------------------------------------------------------------------ real signals
+class SignalAt(pl.Callback):
+    """Sends this process ``sig`` after optimizer step ``at`` (mid-epoch), as a scheduler or
+    Ctrl+C would."""
+
+    def __init__(self, at: int, sig: signal.Signals) -> None:
+        self.at, self.sig = at, sig
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.at:
+            os.kill(os.getpid(), self.sig)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_mid_epoch_saves_exits_with_the_signal_status_and_resumes_exactly(
+    tmp_path, plane_survey, monkeypatch, capsys, caplog, sig
+):
+    # 5 steps per epoch; the signal after step 7 (epoch 1, batch 2): last.ckpt is saved at
+    # that batch end (the default callbacks alone would have only epoch 0's), the fit ends
+    # with 128 + the signal's number and one line on stderr saying how to resume
+    base = siren_overrides(plane_survey, tmp_path) + ["trainer.max_epochs=3"]
+    full, part = tmp_path / "full", tmp_path / "part"
+    m_full = _run(base + [f"model.output_dir={full / 'map'}"], full)
+    original = instantiate_module.instantiate_callbacks
+    monkeypatch.setattr(
+        instantiate_module, "instantiate_callbacks", lambda c: original(c) + [SignalAt(7, sig)]
+    )
+    previous = signal.getsignal(signal.SIGINT)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        train(compose_run(base + [f"model.output_dir={part / 'map'}"], part), part)
+    monkeypatch.undo()
+    assert stop.value.code == 128 + sig
+    assert signal.getsignal(signal.SIGINT) is previous  # the SIGINT handler is given back
+    last = part / "checkpoints" / "last.ckpt"
+    (line,) = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert line == (
+        f"interrupted by {sig.name} at epoch 1, step 7: saved {last}; resume with the same "
+        f"command and ckpt_path=last hydra.run.dir={part}"
+    )
+    assert torch.load(last, weights_only=True)["global_step"] == 7
+    assert not (part / "run.lock").exists()
+    with caplog.at_level("INFO", logger="sss2bathy.train"):
+        m_part = _run(base + [f"model.output_dir={part / 'map'}", "ckpt_path=last"], part)
+    assert f"resuming from {last} at epoch 1 (step 7)" in caplog.text
+    _assert_same_run(full, part, m_full, m_part)
+
+
 def _cli(args: list[str], env: dict) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "sss2bathy.cli.train", *args],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        stderr=subprocess.PIPE,
         text=True,
     )
 
 
+def _cli_overrides(task: str, plane_survey: Path, hills_survey: Path, tmp: Path) -> list[str]:
+    """Long enough to be stopped while it runs (tiny epochs take well under a second)."""
+    if task == "siren":
+        return siren_overrides(plane_survey, tmp) + ["trainer.max_epochs=40"]
+    return cnn_overrides(hills_survey, tmp) + ["trainer.max_epochs=12"]
+
+
+def _outputs(task: str, run: Path) -> list[str]:
+    return [f"hydra.run.dir={run}"] + (
+        [f"model.output_dir={run / 'map'}"] if task == "siren" else []
+    )
+
+
 @pytest.mark.slow
+@pytest.mark.parametrize("task", ["siren", "cnn"])
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
-def test_cli_killed_and_resumed_in_its_run_folder(tmp_path, plane_survey, sig):
-    """``sss2bathy-train ... ckpt_path=last hydra.run.dir=<the killed run's folder>``."""
+def test_cli_killed_and_resumed_in_its_run_folder(tmp_path, plane_survey, hills_survey, task, sig):
+    """``sss2bathy-train ... ckpt_path=last hydra.run.dir=<the killed run's folder>`` with the
+    default callbacks: SIGKILL after epoch 2 resumes at epoch >= 3; SIGTERM mid-fit exits
+    143 with the resume command on stderr; both end as the uninterrupted run."""
     env = {**os.environ, "SSS2BATHY_ROOT": str(ROOT), "OMP_NUM_THREADS": "1"}
-    base = siren_overrides(plane_survey, tmp_path) + [
-        "trainer.max_epochs=40",
-        "callbacks.step_checkpoint.every_n_train_steps=3",
-    ]
+    env.pop("HYDRA_FULL_ERROR", None)
+    base = _cli_overrides(task, plane_survey, hills_survey, tmp_path)
     full, part = tmp_path / "full", tmp_path / "part"
-    proc = _cli(base + [f"hydra.run.dir={full}", f"model.output_dir={full / 'map'}"], env)
-    assert proc.wait(timeout=300) == 0, proc.stdout.read()
-    proc = _cli(base + [f"hydra.run.dir={part}", f"model.output_dir={part / 'map'}"], env)
+    proc = _cli(base + _outputs(task, full), env)
+    assert proc.wait(timeout=600) == 0, proc.stderr.read()
+    proc = _cli(base + _outputs(task, part), env)
     last = part / "checkpoints" / "last.ckpt"
-    deadline = time.time() + 120
+    deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
-        if last.is_file() and torch.load(last, weights_only=True)["global_step"] >= 20:
+        # atomic saves: last.ckpt is always whole, never read half-written
+        if last.is_file() and torch.load(last, weights_only=True)["epoch"] >= 2:
             break
-        time.sleep(0.05)
+        time.sleep(0.02)
     assert proc.poll() is None, "the run ended before it could be killed"
     proc.send_signal(sig)
-    proc.wait(timeout=120)
-    assert torch.load(last, weights_only=True)["epoch"] < 39
-    args = base + [f"hydra.run.dir={part}", f"model.output_dir={part / 'map'}", "ckpt_path=last"]
-    proc = _cli(args, env)
-    out = proc.communicate(timeout=300)[0]
-    assert proc.returncode == 0 and "Restored all states" in out, out
-    metrics = [json.loads((d / "map" / "metrics.json").read_text()) for d in (full, part)]
-    assert metrics[0]["final/mae"] == metrics[1]["final/mae"]
-    maps = [np.load(d / "map" / "map.npz", allow_pickle=False)["heights"] for d in (full, part)]
-    np.testing.assert_array_equal(maps[0], maps[1])
+    err = proc.communicate(timeout=300)[1]
+    ckpt = torch.load(last, weights_only=True)
+    progress = ckpt["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"]
+    assert progress >= 3 if sig == signal.SIGKILL else progress >= 2
+    if sig == signal.SIGKILL:
+        assert proc.returncode == -signal.SIGKILL and (part / "run.lock").is_file()
+    else:
+        assert proc.returncode == 143, err
+        (line,) = [ln for ln in err.splitlines() if ln.startswith("interrupted")]
+        assert line.startswith("interrupted by SIGTERM at epoch ") and line.endswith(
+            f"ckpt_path=last hydra.run.dir={part}"
+        )
+        assert "Traceback" not in err and not (part / "run.lock").exists()
+    proc = _cli(base + _outputs(task, part) + ["ckpt_path=last"], env)
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    assert f"resuming from {last} at epoch {progress} (step {ckpt['global_step']})" in out, out
+    if sig == signal.SIGKILL:  # the killed run's lock is stale: taken over with a warning
+        assert "taking over the stale lock of pid" in out
+    metrics = [json.loads((d / "metrics.json").read_text()) for d in (full, part)]
+    assert metrics[0] == metrics[1] and metrics[0]
+    if task == "siren":
+        maps = [np.load(d / "map" / "map.npz", allow_pickle=False)["heights"] for d in (full, part)]
+        np.testing.assert_array_equal(maps[0], maps[1])
