@@ -120,7 +120,7 @@ def is_user_error(err: BaseException) -> bool:
     and those of :data:`USER_OS_ERRNOS` (other I/O failures keep their traceback)."""
     if not isinstance(err, OSError) or isinstance(err, FileNotFoundError | PermissionError):
         return True
-    return err.errno in USER_OS_ERRNOS
+    return err.errno in USER_OS_ERRNOS or _disk_full(err)
 
 
 def one_line(message: str) -> str:
@@ -152,21 +152,38 @@ def _existing_parent(path: Path) -> Path:
     return path
 
 
-def os_error_message(err: OSError) -> str:
+def _disk_full(err: OSError) -> bool:
+    # rasterio's and h5py's errors carry GDAL's / HDF5's text, not an errno
+    return err.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(err)
+
+
+def os_error_message(err: OSError, folders: Sequence[str | Path] = ()) -> str:
     """One line for an ``OSError`` of the user's environment, naming its path: no
     permission, a read-only file system, a full disk (with the free space), a missing
-    file."""
-    path = err.filename if err.filename is not None else "?"
+    file. ``folders``: where the run writes (its run folder, ``paths.data_dir``), named
+    with their free space when a full disk's error names no file (a failed ``write``)."""
+    path = err.filename if err.filename is not None else None
     other = f" -> {err.filename2}" if getattr(err, "filename2", None) else ""
-    if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        try:
-            free = _human_bytes(shutil.disk_usage(_existing_parent(Path(str(path)))).free)
-        except OSError:
-            free = "unknown"
+    if _disk_full(err):
+        places = [Path(str(path))] if path is not None else [Path(str(f)) for f in folders]
+        free = []
+        for place in dict.fromkeys(places):
+            try:
+                space = _human_bytes(shutil.disk_usage(_existing_parent(place)).free)
+            except OSError:
+                space = "unknown"
+            free.append(f"{space} free at {place}" if path is None else f"{space} free there")
+        if path is not None:
+            where = f"{path}{other}: no space left on its disk"
+        elif err.errno is None:  # a library's error: its own text names the file
+            where = one_line(str(err))
+        else:
+            where = "no space left on the disk while writing"
         return (
-            f"{path}{other}: no space left on its disk ({free} free there); free some space "
-            "or point paths.output_dir / paths.data_dir at another disk"
+            f"{where} ({'; '.join(free) or 'free space unknown'}); free some space or point "
+            "paths.output_dir / paths.data_dir at another disk"
         )
+    path = "?" if path is None else path
     if err.errno == errno.EROFS:
         return (
             f"{path}{other}: read-only file system; point paths.output_dir / paths.data_dir "
@@ -177,18 +194,30 @@ def os_error_message(err: OSError) -> str:
             f"{path}{other}: permission denied (a read-only folder?); point "
             "paths.output_dir / paths.data_dir at a writable folder"
         )
-    if isinstance(err, FileNotFoundError) and err.filename is None:
-        return str(err) or "file not found"
+    if err.filename is None:
+        return str(err) or type(err).__name__
     reason = err.strerror or str(err) or type(err).__name__
-    return f"{path}{other}: {reason}" if err.filename is not None else str(err) or reason
+    return f"{path}{other}: {reason}"
 
 
-def error_message(err: BaseException) -> str:
+def error_message(err: BaseException, folders: Sequence[str | Path] = ()) -> str:
     """The one-line text of a user error (an ``OSError`` by :func:`os_error_message`)."""
-    if isinstance(err, OSError) and (err.filename is not None or err.errno is not None):
-        if err.errno is not None:
-            return os_error_message(err)
+    if isinstance(err, OSError) and (err.errno is not None or _disk_full(err)):
+        return os_error_message(err, folders)
     return str(err) or type(err).__name__
+
+
+def _write_folders(cfg: Any) -> list[str]:
+    """Where a Hydra task writes: its run folder and ``paths.data_dir`` (what exists)."""
+    folders = [str(p) for p in (_hydra_run_dir(),) if p is not None]
+    if isinstance(cfg, DictConfig):
+        try:
+            data = OmegaConf.select(cfg, "paths.data_dir", default=None)
+        except Exception:
+            data = None
+        if data is not None:
+            folders.append(str(data))
+    return folders
 
 
 def report_user_error(message: str, aliases: Mapping[str, str] | None = None) -> None:
@@ -238,8 +267,9 @@ def user_errors(
         except user_error_types() as err:
             if show_traceback() or not is_user_error(err):
                 raise
+            message = error_message(err, _write_folders(args[0] if args else None))
             _remove_failed_run_dir()
-            report_user_error(error_message(err), aliases)
+            report_user_error(message, aliases)
 
     return wrapper
 

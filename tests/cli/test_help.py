@@ -182,6 +182,10 @@ def test_full_disk_and_read_only_folders_are_one_line_naming_the_path(
     assert text.startswith(f"{target}: no space left on its disk (") and " free there)" in text
     denied = PermissionError(errno.EACCES, "Permission denied", "/ro/data/survey")
     assert os_error_message(denied).startswith("/ro/data/survey: permission denied")
+    unnamed = os_error_message(OSError(errno.ENOSPC, "No space left on device"), [tmp_path])
+    assert (
+        unnamed.startswith("no space left on the disk while writing (") and str(tmp_path) in unnamed
+    )
     ro = OSError(errno.EROFS, "Read-only file system", "/mnt/ro/x")
     assert os_error_message(ro).startswith("/mnt/ro/x: read-only file system")
 
@@ -196,6 +200,18 @@ def test_full_disk_and_read_only_folders_are_one_line_naming_the_path(
         assert done.value.code == USER_ERROR_EXIT
         (line,) = capsys.readouterr().err.splitlines()
         assert line.startswith(start)
+
+    @user_errors
+    def gdal_full(cfg):  # rasterio's error: no errno, GDAL's text names the file
+        import rasterio.errors
+
+        raise rasterio.errors.RasterioIOError(f"{target}: Write error: No space left on device")
+
+    with pytest.raises(SystemExit):
+        gdal_full(OmegaConf.create({"paths": {"data_dir": str(tmp_path)}}))
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {target}: Write error: No space left on device (")
+    assert f"free at {tmp_path}" in line
 
     @user_errors
     def broken_pipe():
