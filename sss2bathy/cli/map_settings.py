@@ -1,0 +1,230 @@
+"""The SIREN's settings for a survey's scale: what the map route fits a survey with.
+
+The SIREN reads ``(x, y)`` normalised to ``[-1, 1]`` over its bounds (the tracks' box grown by
+the largest slant range), so the ground wavelengths its first sine layer places are set by
+``omega0`` *and* the survey's extent: the first layer's weights are ``U(+-1/2)``, so its
+finest wavelength is ``lambda_0 = 4 pi E / omega0`` for a half-extent ``E`` (m). The scale
+presets keep ``lambda_0`` near 94 m (demo: ``omega0`` 10 over ~150 m; paper: 30 over
+~450 m): right for the hills of a 100-m survey, far too coarse for a wreck a few metres wide
+seen by a 30-m sidescan. Here ``omega0`` is chosen so that ``lambda_0`` follows the sonar's
+range instead (:data:`WAVELENGTH_PER_RANGE`), never below the scale's own ``omega0``, and a
+higher ``omega0`` gets at least the fast schedule's steps per epoch (a finer SIREN needs more
+steps to settle). Decided on the synthetic wreck survey (``data/survey=synthetic_wrecks``,
+``studies/wreck_study.py``), never on a real line.
+
+Pure functions of numbers (:func:`choose_map_settings`); :func:`survey_scale` measures the
+numbers on lines, :func:`scale_of_xtf_files` on the XTF files of a map config, and
+:func:`apply_map_settings` writes the settings into a composed ``train`` config, leaving
+every key the user set.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("sss2bathy.map")
+
+#: the first sine layer's finest ground wavelength per metre of sonar range (lambda_0 =
+#: WAVELENGTH_PER_RANGE * range): 0.5 puts 15 m at a 30 m range (studies/wreck_study.py)
+WAVELENGTH_PER_RANGE = 0.5
+#: the largest omega0 chosen (beyond it the SIREN's initial field is noise at the bin scale)
+MAX_OMEGA0 = 200.0
+
+
+@dataclass(frozen=True)
+class SurveyScale:
+    """What the SIREN's settings depend on, measured on a survey's lines (metres).
+
+    Attributes:
+        range_m: the largest slant range of any bin.
+        bin_m: the slant-range bin size (median spacing of the bins' ranges).
+        track_m: the tracks' total length.
+        half_extent_m: the half-widths ``(E_x, E_y)`` of the SIREN's input box (the tracks'
+            bounding box grown by ``range_m``, as ``data.pings`` sets the bounds).
+        n_pings: pings over all lines.
+    """
+
+    range_m: float
+    bin_m: float
+    track_m: float
+    half_extent_m: tuple[float, float]
+    n_pings: int
+
+    def __post_init__(self) -> None:
+        for name in ("range_m", "bin_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected a positive number of metres, found {value!r}")
+        if not all(math.isfinite(e) and e > 0 for e in self.half_extent_m):
+            raise ValueError(
+                f"half_extent_m: expected two positive numbers, found {self.half_extent_m!r}"
+            )
+
+
+def survey_scale(positions: Iterable[np.ndarray], ranges: Iterable[np.ndarray]) -> SurveyScale:
+    """The :class:`SurveyScale` of lines given by their ``(P, >=2)`` positions (m) and
+    ``(B,)`` bin slant ranges (m)."""
+    positions = [np.asarray(p, dtype=np.float64) for p in positions]
+    ranges = [np.asarray(r, dtype=np.float64) for r in ranges]
+    if not positions or len(positions) != len(ranges):
+        raise ValueError(
+            f"positions, ranges: expected one of each per line, found {len(positions)} and "
+            f"{len(ranges)}"
+        )
+    r_max = max(float(np.nanmax(r)) for r in ranges)
+    steps = np.concatenate([np.diff(r) for r in ranges if r.size > 1])
+    bin_m = float(np.median(steps)) if steps.size else float("nan")
+    xy = np.concatenate([p[:, :2] for p in positions])
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if xy.size == 0:
+        raise ValueError("positions: expected finite positions, found none")
+    track = sum(
+        float(np.nansum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))) for p in positions
+    )
+    span = xy.max(axis=0) - xy.min(axis=0)
+    half = (float(span[0] / 2 + r_max), float(span[1] / 2 + r_max))
+    return SurveyScale(r_max, bin_m, track, half, int(sum(len(p) for p in positions)))
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """The SIREN settings chosen for a survey (:func:`choose_map_settings`).
+
+    Attributes:
+        omega0: the SIREN's ``omega0`` (``model.siren.omega0``).
+        steps_per_epoch: batches per epoch (``data.steps_per_epoch``); None: the scale's.
+        wavelength_m: the first layer's finest ground wavelength ``lambda_0`` it gives (m).
+    """
+
+    omega0: float
+    steps_per_epoch: int | None
+    wavelength_m: float
+
+    def overrides(self) -> dict[str, Any]:
+        """The ``train`` config keys and values these settings stand for."""
+        out: dict[str, Any] = {"model.siren.omega0": round(self.omega0, 3)}
+        if self.steps_per_epoch is not None:
+            out["data.steps_per_epoch"] = int(self.steps_per_epoch)
+        return out
+
+
+def choose_map_settings(
+    scale: SurveyScale,
+    base_omega0: float,
+    base_steps_per_epoch: int | None,
+    fast_steps_per_epoch: int | None,
+    batch_pings: int,
+    wavelength_per_range: float = WAVELENGTH_PER_RANGE,
+) -> MapSettings:
+    """The SIREN's settings for a survey of ``scale`` (module docstring).
+
+    ``omega0 = 4 pi max(E) / lambda_0`` with ``lambda_0 = wavelength_per_range * range``,
+    at least ``base_omega0`` (the scale's) and at most :data:`MAX_OMEGA0`. When that raises
+    ``omega0``, an epoch gets at least ``fast_steps_per_epoch`` batches (the scale's
+    ``siren_schedule=fast`` count; None: no minimum); otherwise the scale's steps stand.
+    ``base_steps_per_epoch`` None means every ping once per epoch (``batch_pings`` each).
+    """
+    if not (math.isfinite(base_omega0) and base_omega0 > 0):
+        raise ValueError(f"base_omega0: expected a positive number, found {base_omega0!r}")
+    if not (math.isfinite(wavelength_per_range) and wavelength_per_range > 0):
+        raise ValueError(
+            f"wavelength_per_range: expected a positive number, found {wavelength_per_range!r}"
+        )
+    if int(batch_pings) < 1:
+        raise ValueError(f"batch_pings: expected a positive integer, found {batch_pings!r}")
+    wavelength = wavelength_per_range * scale.range_m
+    omega0 = 4 * math.pi * max(scale.half_extent_m) / wavelength
+    omega0 = min(max(omega0, float(base_omega0)), MAX_OMEGA0)
+    steps = None
+    if omega0 > base_omega0 and fast_steps_per_epoch is not None:
+        current = base_steps_per_epoch or math.ceil(scale.n_pings / int(batch_pings))
+        if current < fast_steps_per_epoch:
+            steps = int(fast_steps_per_epoch)
+    finest = 4 * math.pi * max(scale.half_extent_m) / omega0
+    return MapSettings(omega0, steps, finest)
+
+
+SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
+
+
+def scale_of_xtf_files(survey: Mapping[str, Any]) -> SurveyScale:
+    """The :class:`SurveyScale` of a map config's XTF files (``survey``: the
+    ``data/survey=xtf`` keys): navigation and bin ranges only, nothing is imported."""
+    from sss2bathy.io.xtf import read_xtf
+    from sss2bathy.io.xtf_survey import resolve_files
+
+    positions, ranges = [], []
+    origin = None
+    for path in resolve_files(survey["files"]):
+        line, stats = read_xtf(
+            path,
+            survey.get("n_bins"),
+            origin=origin,
+            crs=survey.get("crs"),
+            sensor={k: survey.get(k) for k in SENSOR_KEYS},
+            channel_pair=int(survey.get("channel_pair") or 0),
+            port_far_first=bool(survey.get("port_far_first", True)),
+            missing_attitude=str(survey.get("missing_attitude") or "error"),
+            altitude_tolerance_m=None,  # geometry only: the import checks the altitude
+        )
+        origin = origin or stats.get("origin")
+        positions.append(line.position)
+        ranges.append(line.range_m)
+    return survey_scale(positions, ranges)
+
+
+#: a user's key that stands for a settings key (the model's value interpolates the scale's)
+_ALIASES = {
+    "scale.siren.omega0": "model.siren.omega0",
+    "scale.siren.steps_per_epoch": "data.steps_per_epoch",
+}
+
+
+def _user_keys(overrides: Sequence[str]) -> set[str]:
+    keys = set()
+    for item in overrides:
+        key = str(item).split("=", 1)[0].lstrip("+~")
+        keys.add(_ALIASES.get(key, key))
+    return keys
+
+
+def apply_map_settings(train_cfg: Any, scale: SurveyScale, user_overrides: Sequence[str]) -> dict:
+    """Write :func:`choose_map_settings` for ``scale`` into the composed ``train_cfg`` (in
+    place, an open OmegaConf config), except the keys in ``user_overrides`` (``key=value``
+    strings; ``scale.siren.omega0`` / ``scale.siren.steps_per_epoch`` count as the model's
+    and the data's); returns what was set. The base values are the composed config's own
+    (its scale's; a ``siren_schedule`` already at the fast step count keeps its steps)."""
+    from omegaconf import OmegaConf
+
+    siren = train_cfg.scale.siren
+    settings = choose_map_settings(
+        scale,
+        base_omega0=float(train_cfg.model.siren.omega0),
+        base_steps_per_epoch=train_cfg.data.get("steps_per_epoch"),
+        fast_steps_per_epoch=siren.get("fast_steps_per_epoch"),
+        batch_pings=int(train_cfg.data.batch_pings),
+    )
+    user = _user_keys(user_overrides)
+    applied = {}
+    for key, value in settings.overrides().items():
+        if key in user:
+            continue
+        OmegaConf.update(train_cfg, key, value, merge=False)
+        applied[key] = value
+    log.info(
+        "map settings for a %.0f m range, %.3f m bins, %.0f m of track (half-extent %.0f m): "
+        "%s (finest first-layer wavelength %.1f m)",
+        scale.range_m,
+        scale.bin_m,
+        scale.track_m,
+        max(scale.half_extent_m),
+        applied or "the scale's own",
+        settings.wavelength_m,
+    )
+    return applied
