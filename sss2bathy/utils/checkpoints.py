@@ -97,6 +97,19 @@ def checkpoint_kind(ckpt: Any) -> str | None:
     return None
 
 
+def _pickle_imports(path: Path) -> bool | None:
+    """Whether the pickle in ``path`` imports or calls anything (its opcodes, read without
+    running them); None when it is no whole pickle."""
+    import pickletools
+
+    calls = {"GLOBAL", "STACK_GLOBAL", "REDUCE", "INST", "OBJ", "NEWOBJ", "NEWOBJ_EX", "EXT1"}
+    try:
+        with open(path, "rb") as f:
+            return any(op.name in calls for op, _, _ in pickletools.genops(f))
+    except Exception:  # noqa: BLE001 - a damaged pickle, whatever the opcode reader says
+        return None
+
+
 def _unreadable(path: Path, err: BaseException) -> str:
     """Why ``torch.load(path, weights_only=True)`` failed, in words, from the file itself
     (never torch's own message: it suggests turning the safe loading off)."""
@@ -124,10 +137,13 @@ def _unreadable(path: Path, err: BaseException) -> str:
             )
         return f"is a damaged checkpoint archive ({size} bytes; {type(err).__name__})"
     if head[:1] == b"\x80":
-        if isinstance(err, pickle.UnpicklingError):
+        imports = _pickle_imports(path)
+        if imports is None:
+            return f"is a damaged Python pickle ({size} bytes), not a PyTorch checkpoint"
+        if imports:
             return (
-                "is a pickle holding Python objects besides tensors and plain values: refused "
-                "unread (loading it could run code)"
+                "is a Python pickle that holds Python objects besides tensors and plain "
+                "values: refused unread (loading it could run code)"
             )
         return "is a Python pickle, not a PyTorch checkpoint"
     return f"is not a checkpoint (neither a PyTorch archive nor a pickle; starts {head.hex()})"
@@ -140,13 +156,17 @@ def read_checkpoint(path: str | Path, key: str) -> dict[str, Any]:
     objects, or a file that is no Lightning checkpoint raises a one-line error starting
     with ``key`` and naming the file (``ValueError``; ``FileNotFoundError`` when missing).
     """
+    import warnings
+
     import torch
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{key}: expected a checkpoint file, found no file {path}")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch's own words on a foreign pickle: ours follow
+            warnings.simplefilter("ignore")
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - every failure is the file's: one line
         raise ValueError(f"{key}: {path} {_unreadable(path, err)}") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), Mapping):
@@ -164,7 +184,7 @@ def expect_kind(ckpt: Mapping[str, Any], path: str | Path, key: str, expected: s
     kind = checkpoint_kind(ckpt)
     if kind == expected:
         return kind
-    want = KIND_TITLES[expected].split(" (")[0].removeprefix("a ")
+    want = KIND_TITLES[expected].split(" (")[0]
     if kind is None:
         names = sorted({str(k).split(".")[0] for k in ckpt.get("state_dict", {})})[:6]
         raise ValueError(
