@@ -1,0 +1,90 @@
+"""A map run of a real line beside its sidescan mosaic: does the map show what the sidescan sees?
+
+    .venv/bin/python studies/real_line_figure.py RUN_DIR SURVEY_DIR OUT.png [--title TEXT]
+
+``RUN_DIR``: an ``sss2bathy-map`` run folder (its ``map.npz``); ``SURVEY_DIR``: the imported
+survey (``data/xtf_<name>``). Three panels on the map's grid: the flat-seabed sidescan
+mosaic (:func:`sss2bathy.eval.mosaic.build_mosaic`, shadows kept), the map's heights over
+its hillshade, and the hillshade alone; the map's relief in the title.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def hillshade(z: np.ndarray, cell: float, azimuth_deg: float = 315.0, alt_deg: float = 45.0):
+    gy, gx = np.gradient(z, cell)
+    az, alt = np.radians(azimuth_deg), np.radians(alt_deg)
+    slope = np.arctan(np.hypot(gx, gy))
+    aspect = np.arctan2(-gx, gy)
+    shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
+    return np.clip(shade, 0, 1)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run_dir")
+    p.add_argument("survey_dir")
+    p.add_argument("out")
+    p.add_argument("--title", default="")
+    args = p.parse_args(argv)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sss2bathy.eval.mosaic import build_mosaic
+    from sss2bathy.survey import Survey
+
+    d = np.load(Path(args.run_dir) / "map.npz")
+    cell = float(d["cell_size"])
+    z = np.where(d["region"], d["heights"], np.nan).astype(np.float64)
+    ny, nx = z.shape
+    x0, y0 = float(d["x0"]), float(d["y0"])
+    extent = (x0 - cell / 2, x0 + (nx - 0.5) * cell, y0 - cell / 2, y0 + (ny - 0.5) * cell)
+    survey = Survey.load(Path(args.survey_dir))
+    mosaic = build_mosaic(survey, {"resolution": 0.1, "blank": ["water_column", "no_hit"]})
+    mg = mosaic.grid
+    m_ext = (
+        mg.x0 - mg.cell_size / 2,
+        mg.x0 + (mg.shape[1] - 0.5) * mg.cell_size,
+        mg.y0 - mg.cell_size / 2,
+        mg.y0 + (mg.shape[0] - 0.5) * mg.cell_size,
+    )
+    vals = mg.heights
+    lo, hi = np.nanpercentile(vals, [1, 99])
+    filled = np.where(np.isfinite(z), z, np.nanmedian(z))
+    shade = np.where(np.isfinite(z), hillshade(filled, cell), np.nan)
+    zlo, zhi = np.nanpercentile(z, [0.5, 99.5])
+
+    fig, axs = plt.subplots(1, 3, figsize=(13.5, 4.8), sharex=True, sharey=True)
+    axs[0].imshow(vals, origin="lower", extent=m_ext, cmap="copper", vmin=lo, vmax=hi)
+    axs[0].set_title("sidescan mosaic (flat seabed)")
+    axs[1].imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
+    im = axs[1].imshow(z, origin="lower", extent=extent, cmap="viridis", vmin=zlo, vmax=zhi,
+                       alpha=0.6)  # fmt: skip
+    fig.colorbar(im, ax=axs[1], shrink=0.8, label="height z (m)")
+    axs[1].set_title(f"map (relief {zhi - zlo:.1f} m, 0.5-99.5 %)")
+    axs[2].imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
+    axs[2].set_title("map hillshade")
+    for ax in axs:
+        for line in survey.lines:
+            ax.plot(line.position[:, 0], line.position[:, 1], "r-", lw=0.6)
+        ax.set_xlabel("x East (m, local)")
+    axs[0].set_ylabel("y North (m, local)")
+    if args.title:
+        fig.suptitle(args.title)
+    fig.tight_layout()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=72)
+    print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
+
+
+if __name__ == "__main__":
+    main()
