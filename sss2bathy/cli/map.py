@@ -16,6 +16,7 @@ of the kept altimeter points. It composes ``conf/train.yaml`` and runs
 from __future__ import annotations
 
 import difflib
+import json
 import logging
 import math
 import re
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sss2bathy.cli._common import (
@@ -33,7 +35,9 @@ from sss2bathy.cli._common import (
     log_config,
     setup_environment,
 )
+from sss2bathy.eval.verdict import HEIGHTS_ONLY, INTERPOLATION, KFoldVerdict, kfold_verdict
 from sss2bathy.metrics.bathy import MAP_TAGS
+from sss2bathy.utils.atomic import atomic_write_text
 
 log = logging.getLogger("sss2bathy.map")
 
@@ -161,7 +165,7 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
                 f"cnn_checkpoint: expected a CNN checkpoint for method "
                 f"{map_experiment(cfg)!r} (CNN normals), found none"
             )
-        for key in ("fraction", "block_pings"):
+        for key in ("fraction", "block_pings", "block_m"):
             if cfg.holdout.get(key) is not None:
                 train_cfg.data.holdout[key] = cfg.holdout[key]
         train_cfg.seed = int(cfg.seed)
@@ -170,18 +174,27 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         train_cfg.paths.output_dir = str(cfg.paths.output_dir)
         train_cfg.model.output_dir = str(run_dir)
         train_cfg.run_name = "map"
+        # the SIREN's omega0 / steps for the survey's scale (cli/map_settings.py), except
+        # what the user set in overrides; +map_settings=scale keeps the scale's own
+        if cfg.get("map_settings") != "scale":
+            from sss2bathy.cli.map_settings import apply_map_settings, scale_of_xtf_files
+
+            user = [str(o) for o in cfg.get("overrides") or []]
+            apply_map_settings(train_cfg, scale_of_xtf_files(survey), user)
     return train_cfg
 
 
 @dataclass
 class MapResult:
-    """A finished map run: its folder, output files and metrics."""
+    """A finished map run: its folder, output files, metrics and (``verdict.folds`` >= 2)
+    the K-fold verdict."""
 
     run_dir: Path
     experiment: str
     survey_name: str
     metrics: dict[str, float]
     has_mbes: bool
+    verdict: KFoldVerdict | None = None
 
     @property
     def paths(self) -> dict[str, Path]:
@@ -199,12 +212,58 @@ class MapResult:
                 return float(value)
         return None
 
+    def score(self) -> float | None:
+        """The run's held-out altimeter MAE (m): the K-fold mean of the map's method, else
+        the single draw's."""
+        if self.verdict is not None:
+            mean = self.verdict.scores[0].mean
+            return mean if math.isfinite(mean) else None
+        return self.metric("holdout_alt_mae")
+
+    def coverage_lines(self) -> list[str]:
+        """The written map's coverage: imaged area and extrapolated share."""
+        imaged, share = self.metric("imaged_area_m2"), self.metric("extrapolated_share")
+        if imaged is None or share is None:
+            return []
+        written = self.metric("written_area_m2")
+        before = self.metric("track_region_extrapolated_share")
+        line = f"  imaged area: {imaged:.0f} m^2 (the sonar's footprint of the bins used)"
+        if written is not None:
+            line += f"; map.tif holds {written:.0f} m^2"
+        line += f", {100 * share:.1f} % of it extrapolated"
+        if before is not None:
+            line += f" (a disc of swath radius around the track: {100 * before:.1f} %)"
+        return [line]
+
+    def verdict_lines(self) -> list[str]:
+        """The K-fold table and the verdict sentence."""
+        v = self.verdict
+        if v is None:
+            return []
+        block = (
+            f"blocks of {v.block_m:.1f} m (~{v.block_pings:.0f} pings)"
+            if v.block_m is not None and v.block_pings is not None
+            else "blocks"
+        )
+        cost = f", {v.seconds / 60:.1f} min of fits" if v.seconds is not None else ""
+        lines = [f"  held-out altimeter, {v.folds} folds, {block}{cost}:"]
+        lines += [f"    {row}" for row in v.table()]
+        lines += [f"    {c.describe()}" for c in v.comparisons]
+        lines.append(f"  {v.sentence()}")
+        if self.metric("holdout_alt_mae") is None:
+            lines.append("  (map.tif: the fit on every altimeter point)")
+        return lines
+
     def summary(self) -> list[str]:
-        """What the command prints: where the files are and the held-out scores."""
+        """What the command prints: where the files are, the coverage and the held-out
+        scores (the K-fold table and verdict with ``verdict.folds`` >= 2)."""
         lines = [f"sss2bathy-map: {self.experiment} on survey '{self.survey_name}'"]
         lines += [f"  {label + ':':15s}{path}" for label, path in self.paths.items()]
+        lines += self.coverage_lines()
         fit, interp = self.metric("holdout_alt_mae"), self.metric("holdout_interp_mae")
-        if fit is None or interp is None:
+        if self.verdict is not None:
+            lines += self.verdict_lines()
+        elif fit is None or interp is None:
             lines.append(
                 "  held-out altimeter: none held out (holdout.fraction=0 or lines too short)"
             )
@@ -219,19 +278,118 @@ class MapResult:
                 f"  held-out altimeter MAE: {fit:.3f} m (fit) vs {interp:.3f} m (along-track "
                 f"interpolation of the kept altimeter), ratio {fit / interp:.2f}"
                 + (f", {int(n)} points" if n is not None else "")
-                + f": {verdict}"
+                + f": {verdict} (one draw of blocks; verdict.folds=5 for a K-fold verdict)"
             )
         if self.has_mbes and self.metric("mae") is not None:
             lines.append(f"  MAE against the MBES grid: {self.metric('mae'):.3f} m")
         return lines
 
 
-def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapResult:
-    """Import, fit and write the map of a ``conf/map.yaml`` config into ``run_dir``
-    (``choices``: its group choices, see :func:`train_overrides`)."""
+def verdict_folds(cfg: Mapping[str, Any]) -> int:
+    """``verdict.folds`` checked: 0 or 1 = off (one fit holding out ``holdout.fraction``),
+    else the number of folds."""
+    folds = (cfg.get("verdict") or {}).get("folds", 0)
+    folds = 0 if folds is None else folds
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0:
+        raise ValueError(
+            f"verdict.folds: expected 0 or 1 (off: one held-out draw) or a number of folds "
+            f">= 2, found {folds!r}"
+        )
+    return folds
+
+
+# quieter fold fits (unless the user's overrides set these keys)
+FOLD_OVERRIDES = (
+    "callbacks=none",
+    "trainer.enable_progress_bar=false",
+    "+trainer.enable_model_summary=false",
+)
+
+
+def fold_config(cfg: DictConfig, method: str) -> DictConfig:
+    """The map config of one fold fit of ``method``: the user's overrides plus
+    :data:`FOLD_OVERRIDES` for keys they do not set."""
+    sub = cfg.copy()
+    given = [str(o).lstrip("+~").split("=", 1)[0] for o in cfg.get("overrides") or []]
+    extra = [o for o in FOLD_OVERRIDES if o.lstrip("+").split("=", 1)[0] not in given]
+    with open_dict(sub):
+        sub.method = method
+        sub.overrides = [*(str(o) for o in cfg.get("overrides") or []), *extra]
+    return sub
+
+
+def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> KFoldVerdict | None:
+    """The K-fold verdict (:mod:`sss2bathy.eval.verdict`) of a map config, None when
+    ``verdict.folds`` < 2.
+
+    For each fold ``k`` of ``verdict.folds``, the map's method and ``siren_heights_only``
+    are fitted with fold ``k``'s blocks of altimeter points held out
+    (``data.holdout.folds/fold/block_m``: blocks of ``holdout.block_m`` metres, null = the
+    default length, :func:`sss2bathy.data.holdout.default_block_m`); every fold's
+    interpolation baseline comes with the split. The fold fits write their maps into
+    ``run_dir/verdict/<method>/fold<k>/``; the table goes to ``run_dir/verdict.json``.
+    They cost ``2 x folds`` fits (``folds`` with method=siren_heights_only).
+    """
+    import time
+
     from sss2bathy.cli.train import fit
 
+    folds = verdict_folds(cfg)
+    if folds < 2:
+        return None
+    subject = map_experiment(cfg)
+    methods = [subject] + ([HEIGHTS_ONLY] if subject != HEIGHTS_ONLY else [])
+    scores: dict[str, list[float]] = {m: [] for m in (*methods, INTERPOLATION)}
+    block_m: list[float] = []
+    block_pings: list[float] = []
+    start = time.monotonic()
+    for fold in range(folds):
+        for method in methods:
+            fold_dir = Path(run_dir) / "verdict" / method / f"fold{fold}"
+            train_cfg = compose_train_config(
+                fold_config(cfg, method), fold_dir, {**choices, "logger": "none"}
+            )
+            with open_dict(train_cfg):
+                train_cfg.data.holdout.folds = folds
+                train_cfg.data.holdout.fold = fold
+            t0 = time.monotonic()
+            metrics = fit(train_cfg, fold_dir).metrics
+
+            def value(key: str, metrics: Mapping[str, Any] = metrics) -> float:
+                return float(metrics.get(f"final/{key}", math.nan))
+
+            scores[method].append(value("holdout_alt_mae"))
+            if method == subject:
+                scores[INTERPOLATION].append(value("holdout_interp_mae"))
+                block_m.append(value("holdout_block_m"))
+                block_pings.append(value("holdout_block_pings"))
+            log.info(
+                "verdict: fold %d/%d %s: held-out MAE %.3f m (interpolation %.3f m), %.0f s",
+                fold + 1, folds, method, value("holdout_alt_mae"),
+                value("holdout_interp_mae"), time.monotonic() - t0,
+            )  # fmt: skip
+    mean = lambda xs: float(np.nanmean(xs)) if np.isfinite(xs).any() else None  # noqa: E731
+    verdict = kfold_verdict(
+        scores, subject, mean(block_m), mean(block_pings), time.monotonic() - start
+    )
+    atomic_write_text(
+        Path(run_dir) / "verdict.json", json.dumps(verdict.to_dict(), indent=2, sort_keys=True)
+    )
+    return verdict
+
+
+def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapResult:
+    """Import, fit and write the map of a ``conf/map.yaml`` config into ``run_dir``
+    (``choices``: its group choices, see :func:`train_overrides`). With ``verdict.folds``
+    >= 2 the K-fold verdict's fits come first (:func:`run_verdict`) and the map written is
+    the fit on every altimeter point (the folds estimate its held-out error)."""
+    from sss2bathy.cli.train import fit
+
+    verdict = run_verdict(cfg, run_dir, choices)
     train_cfg = compose_train_config(cfg, run_dir, choices)
+    if verdict is not None:
+        with open_dict(train_cfg):
+            train_cfg.data.holdout.fraction = 0.0
     # the config goes to run_dir/config.yaml once every constructor's check passed
     apply_extras(train_cfg, print_config=False)
     result = fit(train_cfg, run_dir, on_checked=lambda: log_config(train_cfg, run_dir))
@@ -241,13 +399,26 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
             metrics[key] = float(value)
         except (TypeError, ValueError):
             continue
+    if verdict is not None:
+        metrics.update(verdict.metrics())
+        add_to_metrics_json(Path(run_dir) / "metrics.json", verdict.metrics())
     return MapResult(
         Path(run_dir),
         map_experiment(cfg),
         str(train_cfg.data.survey.name),
         metrics,
         result.has_mbes,
+        verdict,
     )
+
+
+def add_to_metrics_json(path: Path, values: Mapping[str, float]) -> None:
+    """Merge ``values`` into the run's ``metrics.json`` (written by the map export)."""
+    if not path.is_file():
+        return
+    data = json.loads(path.read_text())
+    data.update(values)
+    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=True))
 
 
 setup_environment()
@@ -260,7 +431,7 @@ def main(cfg: DictConfig) -> float | None:
     runtime = HydraConfig.get().runtime
     result = run_map(cfg, Path(runtime.output_dir), dict(runtime.choices))
     print("\n".join(result.summary()), flush=True)
-    return result.metric("holdout_alt_mae")
+    return result.score()
 
 
 if __name__ == "__main__":

@@ -449,6 +449,7 @@ def map_command(
         f"paths.data_dir={data_dir}",
         f"paths.output_dir={run_dir.parent}",
         f"hydra.run.dir={run_dir}",
+        "verdict.folds=0",  # one held-out draw per run: the study's seeds are its repeats
         *VARIANTS[variant],
         *map_args,
         "overrides=[" + ",".join(f"'{o}'" for o in overrides) + "]",

@@ -14,7 +14,14 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from sss2bathy.cli.map import MapResult, default_survey_name, map_experiment, train_overrides
+from sss2bathy.cli.map import (
+    MapResult,
+    default_survey_name,
+    fold_config,
+    map_experiment,
+    train_overrides,
+    verdict_folds,
+)
 from sss2bathy.cli.train import HOLDOUT_METRIC, optimized_value
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -76,6 +83,56 @@ def test_map_summary_says_whether_the_fit_beat_interpolation(tmp_path):
     assert "none held out" in text
 
 
+def test_map_summary_shows_coverage_the_k_fold_table_and_the_verdict(tmp_path):
+    from sss2bathy.eval.verdict import HEIGHTS_ONLY, INTERPOLATION, kfold_verdict
+
+    verdict = kfold_verdict(
+        {
+            "siren_lambert": [0.10, 0.20, 0.15, 0.12, 0.30],
+            HEIGHTS_ONLY: [0.11, 0.19, 0.16, 0.12, 0.31],
+            INTERPOLATION: [0.12, 0.22, 0.14, 0.13, 0.29],
+        },
+        "siren_lambert",
+        block_m=7.0,
+        block_pings=57.0,
+        seconds=300.0,
+    )
+    metrics = {
+        "final/imaged_area_m2": 2458.5,
+        "final/written_area_m2": 2489.5,
+        "final/extrapolated_share": 0.0,
+        "final/track_region_extrapolated_share": 0.598,
+    }
+    result = MapResult(tmp_path, "siren_lambert", "s", metrics, False, verdict)
+    text = "\n".join(result.summary())
+    assert "imaged area: 2458 m^2" in text and "0.0 % of it extrapolated" in text
+    assert "59.8 %" in text  # the older disc coverage's share, for comparison
+    assert "5 folds, blocks of 7.0 m (~57 pings)" in text
+    for label in ("SIREN-Lambert (sidescan)", "heights only", "along-track interpolation"):
+        assert label in text
+    assert "0.174 +- 0.080" in text  # the sidescan fit's mean +- std over the folds
+    assert "VERDICT: inconclusive" in text and "every altimeter point" in text
+    assert result.score() == pytest.approx(0.174)
+
+
+def test_fold_fits_are_quiet_unless_the_user_says_otherwise():
+    cfg = OmegaConf.load(CONF / "map.yaml")
+    assert verdict_folds(cfg) >= 2  # the K-fold verdict is on by default
+    cfg.overrides = ["trainer.enable_progress_bar=true", "trainer.max_epochs=3"]
+    sub = fold_config(cfg, "siren_heights_only")
+    assert sub.method == "siren_heights_only" and cfg.method is None
+    assert list(sub.overrides) == [
+        "trainer.enable_progress_bar=true",
+        "trainer.max_epochs=3",
+        "callbacks=none",
+        "+trainer.enable_model_summary=false",
+    ]
+    for bad in (-1, 2.5, "five"):
+        cfg.verdict.folds = bad
+        with pytest.raises(ValueError, match="verdict.folds: expected 0 or 1"):
+            verdict_folds(cfg)
+
+
 # ------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def tiny_xtf(tmp_path_factory) -> tuple[Path, str]:
@@ -128,6 +185,7 @@ def test_sss2bathy_map_on_an_xtf_survey_without_mbes(tmp_path, tiny_xtf):
             f"survey.crs={crs}",
             "survey.n_bins=null",
             "holdout.block_pings=10",
+            "verdict.folds=0",
             f"hydra.run.dir={run}",
             'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
             *_common(tmp_path),
@@ -216,3 +274,41 @@ def test_sss2bathy_map_with_a_cnn_checkpoint(tmp_path, tiny_xtf):
         tmp_path,
     )
     assert proc.returncode != 0 and "cnn_checkpoint: expected a CNN checkpoint file" in proc.stderr
+
+
+@pytest.mark.slow
+def test_sss2bathy_map_k_fold_verdict_end_to_end(tmp_path, tiny_xtf):
+    """verdict.folds=2: two folds of the sidescan fit and of heights only, then the map on
+    every altimeter point; the table, the verdict and the footprint coverage are reported."""
+    folder, crs = tiny_xtf
+    run = tmp_path / "run"
+    proc = _run(
+        "sss2bathy.cli.map",
+        [
+            f"files={folder}",
+            f"survey.crs={crs}",
+            "survey.n_bins=null",
+            "verdict.folds=2",
+            f"hydra.run.dir={run}",
+            'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
+            *_common(tmp_path),
+        ],
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    verdict = json.loads((run / "verdict.json").read_text())
+    assert verdict["folds"] == 2 and verdict["block_m"] > 0 and verdict["block_pings"] > 0
+    assert set(verdict["methods"]) == {"siren_lambert", "siren_heights_only", "interpolation"}
+    for scores in verdict["methods"].values():
+        assert len(scores["mae_per_fold"]) == 2 and np.isfinite(scores["mae_per_fold"]).all()
+    assert verdict["outcome"] in ("helped", "did not help", "inconclusive")
+    for fold in (0, 1):
+        assert (run / "verdict" / "siren_heights_only" / f"fold{fold}" / "map.tif").is_file()
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "final/holdout_alt_mae" not in metrics  # the map: every altimeter point fitted
+    assert metrics["verdict/siren_lambert/mae_mean"] == pytest.approx(
+        verdict["methods"]["siren_lambert"]["mean"]
+    )
+    assert metrics["final/extrapolated_share"] == 0.0 and metrics["final/imaged_area_m2"] > 0
+    assert "VERDICT:" in proc.stdout and "held-out altimeter, 2 folds" in proc.stdout
+    assert "imaged area:" in proc.stdout

@@ -8,14 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sss2bathy.data.pings import PingAltimeterDataModule, holdout_config
 from sss2bathy.data.holdout import (
+    along_track_blocks,
     along_track_distance,
+    default_block_m,
+    fold_blocks,
     holdout_blocks,
     holdout_mae,
     interpolate_along_track,
     split_altimeter,
+    split_altimeter_fold,
 )
+from sss2bathy.data.pings import PingAltimeterDataModule, holdout_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -172,3 +176,107 @@ def test_datamodule_fits_on_the_kept_points_and_keeps_all_pings(tmp_path):
         holdout_config({"fraction": 1.5}, 0)
     with pytest.raises(ValueError, match="data.holdout.block_pings: expected a positive integer"):
         holdout_config({"fraction": 0.2, "block_pings": 2.5}, 0)
+
+
+# ------------------------------------------------------------------ K folds in metres
+def _fold_lines(seed: int = 0) -> list[np.ndarray]:
+    """Along-track distances of three lines with uneven ping spacing (and standstills)."""
+    rng = np.random.default_rng(seed)
+    lines = []
+    for n in (400, 250, 120):
+        step = rng.choice([0.0, 0.2, 0.25, 0.4], n - 1)
+        lines.append(np.concatenate([[0.0], np.cumsum(step)]))
+    return lines
+
+
+@pytest.mark.parametrize("folds", [2, 5])
+def test_every_eligible_block_is_held_out_in_exactly_one_fold(folds):
+    distances = _fold_lines()
+    block_m = 6.0
+    assignment = fold_blocks(distances, block_m, folds, seed=11)
+    eligible = 0
+    for s, fold in zip(distances, assignment, strict=True):
+        blocks = along_track_blocks(s, block_m)
+        assert fold.shape == s.shape and set(np.unique(fold)) <= {-1, *range(folds)}
+        for b in np.unique(blocks):
+            f = np.unique(fold[blocks == b])
+            assert f.size == 1  # a block is held out whole, in one fold
+            if b in (blocks.min(), blocks.max()):
+                assert f[0] == -1  # a line's first and last blocks are always kept
+            else:
+                assert f[0] >= 0
+                eligible += 1
+                span = s[blocks == b]
+                assert span.max() - span.min() <= block_m  # the length in metres
+    per_fold = [sum(int(len(np.unique(along_track_blocks(s, block_m)[f == k])))
+                    for s, f in zip(distances, assignment, strict=True)) for k in range(folds)]  # fmt: skip
+    assert sum(per_fold) == eligible and max(per_fold) - min(per_fold) <= 1  # dealt evenly
+    again = fold_blocks(distances, block_m, folds, seed=11)
+    assert all(np.array_equal(a, b) for a, b in zip(assignment, again, strict=True))
+
+
+def test_fold_blocks_skip_blocks_without_altimeter_and_refuse_too_few():
+    s = np.arange(100) * 0.5  # 50 m: blocks of 5 m, 10 blocks
+    valid = np.ones(100, bool)
+    valid[:20] = False  # blocks 0-1 without altimeter: block 2 is the line's first kept
+    fold = fold_blocks([s], 5.0, 2, seed=0, valid=[valid])[0]
+    blocks = along_track_blocks(s, 5.0)
+    assert (fold[blocks <= 2] == -1).all() and (fold[blocks == 9] == -1).all()
+    assert (fold[(blocks > 2) & (blocks < 9)] >= 0).all()
+    with pytest.raises(ValueError, match=r"data.holdout.block_m: expected blocks short enough"):
+        fold_blocks([s], 20.0, 5, seed=0)
+    with pytest.raises(ValueError, match=r"verdict.folds: expected an integer >= 2"):
+        fold_blocks([s], 5.0, 1, seed=0)
+    with pytest.raises(ValueError, match=r"holdout.block_m: expected a positive length"):
+        along_track_blocks(s, 0.0)
+
+
+def test_default_block_is_twice_the_swath_unless_the_survey_is_short():
+    assert default_block_m([2000.0, 1500.0], swath_width_m=60.0, folds=5) == 120.0
+    short = default_block_m([55.7], swath_width_m=59.0, folds=5)
+    assert short == pytest.approx(55.7 / 8)
+    s = np.linspace(0.0, 55.7, 460)
+    fold_blocks([s], short, 5, seed=0)  # the default length always gives every fold a block
+
+
+def test_fold_splits_partition_the_eligible_points_and_interpolate_them():
+    rng = np.random.default_rng(2)
+    positions, altitudes = [], []
+    for n in (300, 200):
+        xy = np.stack([np.arange(n) * 0.3, rng.normal(0, 0.01, n)], 1)
+        positions.append(np.concatenate([xy, np.full((n, 1), -5.0)], 1))
+        alt = 3.0 + np.sin(np.arange(n) / 20.0)
+        alt[rng.random(n) < 0.05] = np.nan
+        altitudes.append(alt)
+    folds = 4
+    splits = [
+        split_altimeter_fold(positions, altitudes, folds, k, 6.0, seed=5) for k in range(folds)
+    ]
+    held = [
+        (int(line), int(p))
+        for sp in splits
+        for line, p in zip(sp.held_line, sp.held_ping, strict=True)
+    ]
+    assert len(held) == len(set(held))  # no point held out twice
+    n_valid = sum(int(np.isfinite(a).sum()) for a in altitudes)
+    for sp in splits:
+        assert sp.n_held > 0 and sp.n_held + sp.fit.shape[0] == n_valid
+        assert sp.block_m == 6.0 and sp.folds == folds and sp.n_blocks >= 1
+        assert sp.block_pings == pytest.approx(20.0, abs=1.0)  # 6 m of 0.3 m steps
+        assert np.isfinite(sp.interp).all() and sp.interp_mae < 0.2
+    with pytest.raises(ValueError, match=r"data.holdout.fold: expected an integer in \[0, 4\)"):
+        split_altimeter_fold(positions, altitudes, folds, 4, 6.0, seed=5)
+    # block_m=None: the default length from the swath width
+    auto = split_altimeter_fold(positions, altitudes, 3, 0, None, seed=5, swath_width_m=4.0)
+    assert auto.block_m == pytest.approx(8.0)
+
+
+def test_holdout_config_takes_the_k_fold_keys():
+    cfg = holdout_config({"folds": 5, "fold": 4, "block_m": 7.5}, 3)
+    assert cfg["folds"] == 5 and cfg["fold"] == 4 and cfg["block_m"] == 7.5 and cfg["seed"] == 3
+    with pytest.raises(ValueError, match=r"data.holdout.folds: expected 0 \(off\)"):
+        holdout_config({"folds": 1}, 0)
+    with pytest.raises(ValueError, match=r"data.holdout.fold: expected an integer in \[0, 5\)"):
+        holdout_config({"folds": 5, "fold": 5}, 0)
+    with pytest.raises(ValueError, match=r"data.holdout.block_m"):
+        holdout_config({"folds": 5, "block_m": -1.0}, 0)
