@@ -101,8 +101,11 @@ class ProgressLogger(pl.Callback):
 
     def _label(self, trainer: pl.Trainer, phase: str) -> str:
         max_epochs = trainer.max_epochs
-        of = f"/{max_epochs}" if max_epochs is not None and max_epochs > 0 else ""
-        return f"{phase}: epoch {trainer.current_epoch + 1}{of}"
+        epoch = trainer.current_epoch + 1
+        if max_epochs is not None and max_epochs > 0:
+            # at the end of a fit the epoch counter has moved past the last epoch
+            return f"{phase}: epoch {min(epoch, max_epochs)}/{max_epochs}"
+        return f"{phase}: epoch {epoch}"
 
     def on_train_batch_end(self, trainer: pl.Trainer, *args: Any, **kwargs: Any) -> None:
         if self.progress is not None:

@@ -43,8 +43,8 @@ __all__ = [
 VERTICAL_REFERENCE = {
     "xtf": (
         "height of the seafloor (m, up, negative below) relative to the sea surface through "
-        "the vehicle depth: z = -SensorDepth of the XTF pings minus the altitude, no tide or "
-        "datum correction"
+        "the vehicle depth: the vehicle at z = -SensorDepth of the XTF pings, the altimeter's "
+        "seabed at that z minus the altitude; no tide or datum correction"
     ),
     None: "height of the seafloor (m, up, negative below the survey's vertical datum z = 0)",
 }

@@ -56,6 +56,8 @@ def test_lines_every_interval_with_epoch_step_percent_rate_and_eta(caplog):
         "train: epoch 2/10: 120/1000 steps (12.0 %), 4 steps/s, 30 s elapsed, ETA 3 min 40 s"
     )
     assert lines[-1].startswith("train done: epoch 5/10: 400/1000 steps (40.0 %)")
+    trainer.current_epoch = 10  # a finished fit's counter is past its last epoch
+    assert cb._label(trainer, "train done") == "train done: epoch 10/10"
 
 
 def test_silent_on_a_terminal_and_validation_counts(caplog):
