@@ -75,6 +75,12 @@ HELP = CliHelp(
         ),
         ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
         ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
+        (
+            "verdict.folds=K",
+            "K-fold held-out verdict: fit vs heights only vs interpolation "
+            "(5; 0 = one draw of holdout.fraction)",
+        ),
+        ("holdout.block_m=M", "the verdict's held-out blocks, m of track (null: auto)"),
         ("logger=NAME", "tensorboard (default) | none"),
         ("torch_threads=N", "CPU threads of the fit (default: torch's)"),
         (
@@ -124,8 +130,10 @@ def map_experiment(cfg: Mapping[str, Any]) -> str:
 
 
 def check_map_config(cfg: DictConfig) -> None:
-    """What ``sss2bathy-map`` checks before its run folder is made: the method."""
+    """What ``sss2bathy-map`` checks before its run folder is made: the method and
+    ``verdict.folds``."""
     map_experiment(cfg)
+    verdict_folds(cfg)
 
 
 def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[str]:
