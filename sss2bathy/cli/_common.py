@@ -227,10 +227,11 @@ def report_user_error(message: str, aliases: Mapping[str, str] | None = None) ->
     raise SystemExit(USER_ERROR_EXIT)
 
 
-def _remove_failed_run_dir() -> None:
+def _remove_failed_run_dir(cfg: Any = None) -> None:
     """Inside a single Hydra run: remove its run folder when it holds nothing the run made
     (Hydra's ``.hydra/``, the job's log, ``config.yaml``, empty folders), so a run that
-    failed at start-up leaves no empty run folder behind."""
+    failed at start-up leaves no empty run folder behind; then the folders above it that
+    are left empty, up to ``cfg.paths.output_dir`` (kept)."""
     try:
         from hydra.core.hydra_config import HydraConfig
         from hydra.types import RunMode
@@ -251,6 +252,20 @@ def _remove_failed_run_dir() -> None:
             continue
         return  # the run made something: keep its folder
     shutil.rmtree(folder, ignore_errors=True)
+    try:
+        top = OmegaConf.select(cfg, "paths.output_dir", default=None) if cfg is not None else None
+    except Exception:
+        top = None
+    if top is None:
+        return
+    top = Path(str(top)).absolute()
+    parent = folder.absolute().parent
+    while parent != top and top in parent.parents:
+        try:
+            parent.rmdir()  # only when empty (runs/<task>/ made for this run)
+        except OSError:
+            break
+        parent = parent.parent
 
 
 def user_errors(
@@ -267,8 +282,9 @@ def user_errors(
         except user_error_types() as err:
             if show_traceback() or not is_user_error(err):
                 raise
-            message = error_message(err, _write_folders(args[0] if args else None))
-            _remove_failed_run_dir()
+            cfg = args[0] if args else None
+            message = error_message(err, _write_folders(cfg))
+            _remove_failed_run_dir(cfg if isinstance(cfg, DictConfig) else None)
             report_user_error(message, aliases)
 
     return wrapper
