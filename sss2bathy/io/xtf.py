@@ -67,6 +67,7 @@ from sss2bathy.io.bottom import (
     detect_first_return,
     detector_accuracy,
 )
+from sss2bathy.io.jsf import jsf_as_xtf, read_jsf_sensor
 from sss2bathy.io.xtf_checks import (
     AltimeterCheck,
     beam_vs_data,
@@ -202,6 +203,8 @@ def _next_packet(raw, start: int, size: int, n_start: int) -> int | None:
 
 
 def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
+    if path.suffix.lower() == ".jsf":  # Edgetech JSF, as the XTF packets it converts to
+        return _Parsed(*jsf_as_xtf(path, channel_pair), damaged=[])
     size = path.stat().st_size
     if size < FILE_HEADER_BYTES:
         raise SurveyFormatError(
@@ -512,6 +515,8 @@ def read_xtf_sensor(path: str | Path, channel_pair: int = 0) -> dict[str, float 
     path = Path(path)
     if not path.is_file():
         raise SurveyFormatError(path, "file", "an existing XTF file", "missing file")
+    if path.suffix.lower() == ".jsf":
+        return read_jsf_sensor(path, channel_pair)
     with open(path, "rb") as f:
         raw = f.read(FILE_HEADER_BYTES)
     if len(raw) < FILE_HEADER_BYTES:

@@ -69,6 +69,10 @@ __all__ = [
     "validate_xtf_config",
 ]
 
+#: the sidescan files a folder in ``data.survey.files`` contributes (Edgetech JSF is read
+#: through the XTF import: :mod:`sss2bathy.io.jsf`)
+SUFFIXES = (".xtf", ".jsf")
+
 # Bump when the import changes what it writes, so cached folders are rebuilt.
 IMPORT_VERSION = 4
 
@@ -118,13 +122,15 @@ def resolve_files(files: Any) -> list[Path]:
     for item in items:
         p = Path(str(item)).expanduser()
         if p.is_dir():
-            hits = [q for q in p.iterdir() if q.is_file() and q.suffix.lower() == ".xtf"]
+            hits = [q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SUFFIXES]
         elif p.is_file():
             hits = [p]
         else:
             hits = [Path(h) for h in glob.glob(str(p), recursive=True) if Path(h).is_file()]
         if not hits:
-            raise ValueError(f"data.survey.files: expected XTF files at {str(p)!r}, found none")
+            raise ValueError(
+                f"data.survey.files: expected XTF or JSF files at {str(p)!r}, found none"
+            )
         found.extend(hits)
     return sorted({h.resolve() for h in found})
 
