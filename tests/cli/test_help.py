@@ -96,33 +96,45 @@ def test_hydra_help_still_prints_the_full_help(tmp_path):
     assert len(proc.stdout.splitlines()) > 100
 
 
-def test_misspelt_method_is_one_line_with_did_you_mean(tmp_path):
+def refusal(args: list[str], monkeypatch, capsys) -> list[str]:
+    """``sss2bathy-map args`` in this process: its exit status must be 2; its stderr lines.
+    (The refusals come before Hydra runs, so no Hydra state is left behind.)"""
+    from sss2bathy.cli import map as cli
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.delenv("SSS2BATHY_TRACE", raising=False)
+    monkeypatch.setattr(sys, "argv", ["sss2bathy-map", *args])
+    with pytest.raises(SystemExit) as done:
+        cli.main()
+    assert done.value.code == USER_ERROR_EXIT
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    return [ln for ln in captured.err.splitlines() if ln.strip()]
+
+
+def test_misspelt_method_is_one_line_with_did_you_mean(tmp_path, monkeypatch, capsys):
     run_dir = tmp_path / "run"
-    proc = run_cli(["files=x.xtf", "method=siren_lambret", f"hydra.run.dir={run_dir}"], tmp_path)
-    assert proc.returncode == USER_ERROR_EXIT
-    (line,) = stderr_lines(proc)
+    args = ["files=x.xtf", "method=siren_lambret", f"hydra.run.dir={run_dir}"]
+    (line,) = refusal(args, monkeypatch, capsys)
     assert line.startswith("error: method: expected one of siren_lambert, siren_heights_only, ")
     assert "did you mean siren_lambert?" in line
-    assert "Traceback" not in proc.stdout + proc.stderr
     assert not run_dir.exists()
 
 
 @pytest.mark.parametrize("key", ["survey.crs", "survey.mbes_crs"])
-def test_bad_crs_is_one_line_before_any_run_folder(tmp_path, key):
+def test_bad_crs_is_one_line_before_any_run_folder(tmp_path, monkeypatch, capsys, key):
     run_dir = tmp_path / "run"
-    proc = run_cli(["files=x.xtf", f"{key}=EPSG:99999", f"hydra.run.dir={run_dir}"], tmp_path)
-    assert proc.returncode == USER_ERROR_EXIT
-    assert stderr_lines(proc) == [
+    args = ["files=x.xtf", f"{key}=EPSG:99999", f"paths.output_dir={tmp_path / 'out'}"]
+    assert refusal([*args, f"hydra.run.dir={run_dir}"], monkeypatch, capsys) == [
         f"error: config key '{key}': expected a coordinate reference system pyproj knows "
         "(e.g. EPSG:32633, or null to take the file's), found 'EPSG:99999'"
     ]
-    assert not run_dir.exists() and not (tmp_path / "outputs").exists()
+    assert not run_dir.exists() and not (tmp_path / "out").exists()
 
 
-def test_a_key_at_the_wrong_level_is_pointed_to(tmp_path):
-    proc = run_cli(["files=x.xtf", "crs=EPSG:32633", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
-    assert proc.returncode == USER_ERROR_EXIT
-    (line,) = stderr_lines(proc)
+def test_a_key_at_the_wrong_level_is_pointed_to(tmp_path, monkeypatch, capsys):
+    args = ["files=x.xtf", "crs=EPSG:32633", f"hydra.run.dir={tmp_path / 'r'}"]
+    (line,) = refusal(args, monkeypatch, capsys)
     assert "unknown config key 'crs'; did you mean 'survey.crs'?" in line
 
 
