@@ -17,12 +17,13 @@ held out.
 
 **K folds** (:func:`fold_blocks`, :func:`split_altimeter_fold`): for a verdict that does not
 hang on one draw, each line is cut into blocks of ``block_m`` metres of along-track
-distance (the last one shorter); the blocks strictly between the first and the last block
-holding an altimeter point of their line are *eligible*, and are dealt, in a seeded random
-order over all lines, round-robin to ``folds`` folds, so every eligible block is held out
-in exactly one fold and each fold holds out blocks at other places of the survey. Fold
-``k`` holds out the altimeter points of its blocks; the first and last block of a line are
-always kept (the baseline interpolates). ``block_m`` defaults to
+distance from its first ping (the last one shorter); the blocks holding an altimeter point
+that leave at least ``block_m`` of track with altimeter points before and after them
+(measured from the line's first and last altimeter point) are *eligible*, and are dealt,
+in a seeded random order over all lines, round-robin to ``folds`` folds, so every eligible
+block is held out in exactly one fold and each fold holds out blocks at other places of
+the survey. Fold ``k`` holds out the altimeter points of its blocks; a whole block at
+either end of a line is always kept (the baseline interpolates, never extrapolates). ``block_m`` defaults to
 :func:`default_block_m`. All functions here are pure (arrays in, arrays out).
 """
 
@@ -136,8 +137,8 @@ def default_block_m(line_lengths_m: Sequence[float], swath_width_m: float, folds
     swath width (a held-out block is then longer than the area a ping's swath reaches
     across, so neither the sidescan of the neighbouring kept pings nor the interpolation
     sees over it), shortened on short surveys to ``total length / (folds + 3 x lines)`` so
-    each fold still gets a block (every line keeps its first and last block and rounding
-    loses about one more)."""
+    each fold still gets a block (every line keeps a whole block at either end and rounding
+    loses at most one more)."""
     lengths = [float(v) for v in line_lengths_m]
     if int(folds) < 1:
         raise ValueError(f"verdict.folds: expected a positive number of folds, found {folds}")
@@ -177,14 +178,21 @@ def fold_blocks(
         valid = [np.ones(b.shape, bool) for b in blocks]
     valid = [np.asarray(v, bool) for v in valid]
     eligible: list[tuple[int, int]] = []
-    for i, (b, v) in enumerate(zip(blocks, valid, strict=True)):
+    size = float(block_m)
+    for i, (b, v, s) in enumerate(zip(blocks, valid, distances_m, strict=True)):
         if v.shape != b.shape:
             raise ValueError(f"valid[{i}]: expected shape {b.shape}, found {v.shape}")
         if not v.any():
             continue
-        with_points = np.unique(b[v])
-        first, last = int(with_points[0]), int(with_points[-1])
-        eligible += [(i, int(k)) for k in with_points if first < k < last]
+        s = np.asarray(s, np.float64)
+        start, end = float(s[v][0]), float(s[v][-1])
+        eps = 1e-9 * max(1.0, end)
+        # a whole block of kept altimeter points at either end of the line
+        eligible += [
+            (i, int(k))
+            for k in np.unique(b[v])
+            if k * size >= start + size - eps and (k + 1) * size <= end - size + eps
+        ]
     if len(eligible) < folds:
         total = sum(float(s[-1]) if len(s) else 0.0 for s in map(np.asarray, distances_m))
         raise ValueError(
