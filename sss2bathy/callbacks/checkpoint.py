@@ -11,7 +11,9 @@ SIGTERM / SIGINT, always atomically.
   stop with ``SIGTERMException`` at the next batch end. ``LastCheckpoint`` saves
   ``last.ckpt`` at that batch end (the same state as a periodic mid-epoch save) and routes
   a first SIGINT (Ctrl+C) the same way instead of a ``KeyboardInterrupt`` in the middle of
-  an optimizer step; a second SIGINT interrupts at once. Lightning's SLURM auto-requeue
+  an optimizer step; a second SIGINT interrupts at once. With several processes (DDP) the
+  save waits for the step at which Lightning stops every rank together (``on_exception``),
+  so no rank waits in a barrier for another. Lightning's SLURM auto-requeue
   (SIGUSR1, ``hpc_ckpt_<n>.ckpt``) is left as it is. A signal during the fit's validation
   saves nothing new (a mid-validation state): the newest save stands.
   :func:`interruption` tells the entry point what happened, for its exit status (143 /
@@ -178,6 +180,7 @@ class LastCheckpoint(ModelCheckpoint):
     ) -> None:
         if (
             trainer.received_sigterm
+            and trainer.world_size == 1  # ranks stop together later (on_exception)
             and self._signal_owner(trainer)
             and not self._saved_at_this_step(trainer)
             and not self._should_skip_saving_checkpoint(trainer)
@@ -186,16 +189,23 @@ class LastCheckpoint(ModelCheckpoint):
             self._save_last(trainer)
             self._record(trainer, saved_now=True)
             return
-        if self._saved_at_this_step(trainer):
+        if self._saved_at_this_step(trainer) or self._epoch_save_follows(trainer):
             return
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
 
+    def _epoch_due(self, trainer: pl.Trainer) -> bool:
+        return self._every_n_epochs >= 1 and (trainer.current_epoch + 1) % self._every_n_epochs == 0
+
+    def _epoch_save_follows(self, trainer: pl.Trainer) -> bool:
+        """This is the epoch's last batch and a peer saves at its end (after validation):
+        a step save now would be overwritten at once."""
+        last_batch = trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
+        return last_batch and any(p._epoch_due(trainer) for p in self._peers(trainer))
+
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if self._every_n_epochs < 1 or (trainer.current_epoch + 1) % self._every_n_epochs:
-            return
-        if not self._should_skip_saving_checkpoint(trainer) and not self._saved_at_this_step(
-            trainer
-        ):
+        # also after a step save at this step: the epoch end's state (validation done,
+        # epoch counted) is what a resume should continue from
+        if self._epoch_due(trainer) and not self._should_skip_saving_checkpoint(trainer):
             self._save_last(trainer)
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
