@@ -256,19 +256,31 @@ def report_interruption(trainer: Any, run_dir: Path | None) -> SystemExit:
     what = interruption(trainer)
     where = f"epoch {what.epoch}, step {what.step}"
     if what.checkpoint is None:
-        saved = "no checkpoint was written (nothing to resume: a rerun starts over)"
+        saved = "no checkpoint was written"
     elif what.saved_now:
         saved = f"saved {what.checkpoint}"
     else:
         saved = f"the newest save {what.checkpoint} resumes it"
     folder = run_dir if run_dir is not None else "<run folder>"
-    print(
-        f"interrupted by {what.signal} at {where}: {saved}; resume with the same command "
-        f"and ckpt_path=last hydra.run.dir={folder}",
-        file=sys.stderr,
-        flush=True,
-    )
+    entry = _hydra_config_name()
+    if what.checkpoint is None:
+        how = "rerun the same command to start over"
+    elif entry in (None, "train"):
+        how = f"resume with the same command and ckpt_path=last hydra.run.dir={folder}"
+    else:  # sss2bathy-map composes its fit's config itself and takes no ckpt_path
+        how = f"sss2bathy-{entry} does not resume a fit: rerun it to start over"
+    print(f"interrupted by {what.signal} at {where}: {saved}; {how}", file=sys.stderr, flush=True)
     return SystemExit(what.exit_code)
+
+
+def _hydra_config_name() -> str | None:
+    """The primary config of the running Hydra job (``train``, ``map``), None outside one."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().job.config_name)
+    except (ValueError, ImportError, AttributeError):
+        return None
 
 
 def _fresh_tensorboard_dirs(loggers: list) -> list[Path]:
