@@ -838,8 +838,9 @@ def write_jsf(
     subsystem: int = 21,
     ping_attitude: bool = True,
     attitude_messages: bool = False,
+    data_format: int = 0,
 ) -> dict[str, Any]:
-    """Write a survey line as a JSF file (envelope data, one message per ping and side),
+    """Write a survey line as a JSF file (one sonar data message per ping and side),
     atomically. For test fixtures: only the fields :func:`read_jsf` reads are filled.
 
     Args:
@@ -856,9 +857,12 @@ def write_jsf(
             are clear).
         attitude_messages: also write a pitch/roll message (2020) at every ping time and half
             a ping period after the last.
+        data_format: 0 (envelope, uint16) or 1 (analytic signal: int16 real and imaginary
+            parts of the intensity at a phase advancing 0.7 rad per sample).
 
-    Stored: per ping and side the smallest weighting factor N that fits the largest sample
-    in uint16, samples ``round(I * 2^N)`` (so each is within ``max / 65535`` of ``I``;
+    Stored: per ping and side the largest weighting factor N that fits the largest sample
+    in uint16 (int16 parts for the analytic format), samples ``round(I * 2^N)`` (so each is
+    within ``max / 65535`` of ``I``; ``max / 32767`` for the analytic format's magnitude;
     negative / non-finite intensities are written as 0 and counted); the sample interval in
     whole nanoseconds; NaN altitude as 0 with its validity bit clear; times to 1 ms.
 
@@ -868,6 +872,10 @@ def write_jsf(
     path = Path(path)
     if nav_units not in ("auto", "latlon", "metres"):
         raise ValueError(f"nav_units: expected 'auto', 'latlon' or 'metres', found {nav_units!r}")
+    if data_format not in DATA_FORMATS:
+        raise ValueError(
+            f"data_format: expected one of {sorted(DATA_FORMATS)}, found {data_format}"
+        )
     if not 0 <= subsystem <= 255:
         raise ValueError(f"subsystem: expected 0..255, found {subsystem}")
     origin = dict(origin or {})
@@ -929,6 +937,7 @@ def write_jsf(
     validity = (1 << BIT_POSITION) | (1 << BIT_DEPTH) | (1 << BIT_SOUND_SPEED)
     if ping_attitude:
         validity |= (1 << BIT_HEADING) | (1 << BIT_PITCH_ROLL)
+    full = 65535.0 if data_format == 0 else 32767.0
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         for k in range(P):
             secs = int(ms[k] // 1000)
@@ -939,7 +948,7 @@ def write_jsf(
             h["ping_number"] = k + 1
             h["msb"] = (freq_dahz >> 16) | ((freq_dahz >> 16) << 4) | ((B >> 16) << 8)
             h["id_code"] = 1
-            h["data_format"] = 0
+            h["data_format"] = data_format
             h["x"], h["y"], h["coordinate_units"] = int(xs[k]), int(ys[k]), code
             h["samples"] = B & 0xFFFF
             h["sample_interval_ns"] = interval_ns
@@ -964,9 +973,14 @@ def write_jsf(
             for side in (PORT, STARBOARD):
                 vals = intensity[k, side]
                 top = float(vals.max())
-                n_w = int(math.floor(math.log2(65535.0 / top))) if top > 0 else 0
+                n_w = int(math.floor(math.log2(full / top))) if top > 0 else 0
                 n_w = max(min(n_w, 32767), -32768)
-                codes = np.clip(np.round(vals * 2.0**n_w), 0, 65535).astype("<u2")
+                if data_format == 0:
+                    codes = np.clip(np.round(vals * 2.0**n_w), 0, full).astype("<u2")
+                else:
+                    parts = vals * 2.0**n_w * np.exp(0.7j * np.arange(B))
+                    pairs = np.stack([parts.real, parts.imag], axis=1)
+                    codes = np.clip(np.round(pairs), -full, full).astype("<i2")
                 h["weighting"] = n_w
                 f.write(_message(SONAR_DATA, subsystem, side, h.tobytes() + codes.tobytes()))
         if attitude_messages:

@@ -132,6 +132,17 @@ def test_import_gives_the_xtf_line(jsf, line, origin):
     }
 
 
+def test_analytic_signal_is_read_as_its_magnitude(tmp_path, line, origin):
+    path = tmp_path / "C.jsf"
+    write_jsf(line, path, origin, data_format=1)
+    got = read_jsf(path)
+    for side, chans in ((0, got.port), (1, got.starboard)):
+        for k, ch in enumerate(chans):
+            want = line.intensity[k, side].astype(np.float64)
+            # each part rounded: the magnitude within 0.71 of the int16 part's LSB
+            assert np.abs(ch.samples - want).max() <= 0.71 * want.max() / 32767 * 2
+
+
 def test_metres_navigation_round_trip(tmp_path, line):
     path = tmp_path / "M.jsf"
     stats = write_jsf(line, path, {"crs": None})
@@ -328,6 +339,20 @@ def test_files_without_validity_flags_take_non_zero_values(jsf, line, caplog):
     assert not got.validity_flags and "no ping sets a validity flag" in caplog.text
     assert np.abs(got.altitude_m - line.altitude_m).max() < 1e-3
     assert np.isfinite(got.heading_deg).all() and np.isfinite(got.sound_speed_mps).all()
+
+
+def test_clashing_time_stamps_and_layback_are_warned(jsf, line, caplog):
+    path, wstats = jsf
+    off = sonar_offsets(path)[4] + 16  # ping 3's port message
+    h = np.frombuffer(path.read_bytes()[off : off + 240], SONAR_HEADER)[0]
+    patch_sonar(path, 4, ms_today=int(h["ms_today"]) + 5000, layback_m=12.0)
+    with caplog.at_level(logging.WARNING):
+        got = read_jsf(path)
+    assert "1 pings whose seconds since 1970 (bytes 0-3) and milliseconds today" in caplog.text
+    assert "layback up to 12.0 m recorded; positions taken as the sonar's" in caplog.text
+    # the seconds since 1970 are kept; the milliseconds of the second still come from 200-203
+    assert np.abs(got.time_s - wstats["epoch_s"] - line.time_s).max() <= 0.0005 + 1e-6
+    assert got.layback_m[2] == 12.0
 
 
 def test_time_from_year_and_day_before_protocol_8(jsf, line):
