@@ -125,3 +125,19 @@ def test_log_progress_wraps_a_loop(caplog):
     assert lines[0].startswith("draping: 1/3 lines (33.3 %)") and "ETA" in lines[0]
     assert lines[-1].startswith("draping done: 3/3 lines (100.0 %)")
     assert not any(ln.startswith("quick") for ln in lines)  # short loops stay silent
+
+
+def test_training_experiments_have_the_progress_callback():
+    import os
+
+    from hydra import compose, initialize_config_dir
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    conf = os.path.join(root, "conf")
+    # the CNN (default callbacks + its own), a SIREN with a callbacks list, a tuning run
+    names = ["cnn", "siren_lambert", "lambert_tune"]
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        for name in names:
+            cfg = compose("train", overrides=[f"experiment={name}"])
+            target = cfg.callbacks.progress._target_
+            assert target == "sss2bathy.callbacks.progress.ProgressLogger", name
