@@ -29,6 +29,7 @@ from sss2bathy.draping.surface import DrapeSurface
 from sss2bathy.survey import BathyGrid, SidescanLine, Survey, SurveyFormatError
 from sss2bathy.survey import mask_reason_counts as _counts
 from sss2bathy.utils.atomic import atomic_write_text, file_sha256, stable_hash
+from sss2bathy.utils.progress import log_progress
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +226,8 @@ def drape_survey(
     result: dict[str, DrapedLine] = {}
     fresh: list[str] = []
     surface: DrapeSurface | None = None
-    for name in names:
+    # a progress line (done, rate, ETA) every 30 s of a long draping
+    for name in log_progress(names, "draping", unit="lines"):
         line = survey.line(name)
         draped = _load_cached(folder / f"{name}.npz", key, line, line_hashes[name])
         if draped is None:

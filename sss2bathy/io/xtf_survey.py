@@ -57,6 +57,7 @@ from sss2bathy.utils.checks import (
     require_number,
 )
 from sss2bathy.utils.config import plain_config
+from sss2bathy.utils.progress import log_progress
 
 log = logging.getLogger(__name__)
 
@@ -477,7 +478,8 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
     sensor = {k: merged[k] for k in SENSOR_KEYS}
     origin: dict[str, Any] | None = None
     lines, stats = [], {}
-    for path in files:
+    # a progress line (done, rate, ETA) every 30 s of a long import
+    for path in log_progress(files, "XTF import", unit="files"):
         line, st = read_xtf(
             path, merged["n_bins"], origin=origin, crs=merged["crs"], sensor=sensor, **read_kwargs
         )
