@@ -6,6 +6,12 @@ an entry point with ONE line on stderr, ``error: <what happened>``, and exit sta
 (:data:`USER_ERROR_EXIT`); ``--trace`` on the command line or ``HYDRA_FULL_ERROR=1`` shows
 the traceback instead. Hydra entry points use :func:`hydra_entry` in place of
 ``@hydra.main``; plain ``argparse`` ones wrap their body in :func:`user_errors`.
+
+``--help`` prints a short :class:`CliHelp` (usage line, main keys, examples);
+``--hydra-help`` Hydra's full help. Checks that need only the config (keys, group options,
+CRS values, a writable output folder, the entry point's own) run before Hydra makes the run
+folder; a run that fails at start-up anyway leaves no empty run folder. The composed config
+goes to ``config.yaml`` in the run folder, not to the console.
 """
 
 from __future__ import annotations
