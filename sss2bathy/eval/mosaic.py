@@ -585,8 +585,7 @@ def render_mosaic(
     aspect = ny / max(nx, 1)
     w = max_inches if aspect <= 1 else max_inches / aspect
     fig, ax = plt.subplots(figsize=(max(w, 3.0), max(w * aspect, 3.0) + 0.6))
-    cmap = plt.get_cmap("gray").copy()
-    cmap.set_bad(NODATA_COLOUR)
+    cmap = plt.get_cmap("gray").with_extremes(bad=NODATA_COLOUR)
     im = ax.imshow(
         np.ma.masked_invalid(data[::-1]),
         extent=extent,
