@@ -257,6 +257,16 @@ class MapResult:
         lines = [f"  held-out altimeter, {v.folds} folds, {block}{cost}:"]
         lines += [f"    {row}" for row in v.table()]
         lines += [f"    {c.describe()}" for c in v.comparisons]
+        if v.imaged_share is not None:
+            lines.append(
+                f"    held-out points inside the sonar's footprint: {100 * v.imaged_share:.0f} %"
+                + (
+                    " (a line's nadir gap: the sidescan reaches them only through the map's "
+                    "continuity)"
+                    if v.imaged_share < 0.05
+                    else ""
+                )
+            )
         lines.append(f"  {v.sentence()}")
         if self.metric("holdout_alt_mae") is None:
             lines.append("  (map.tif: the fit on every altimeter point)")
@@ -350,6 +360,7 @@ def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> K
     scores: dict[str, list[float]] = {m: [] for m in (*methods, INTERPOLATION)}
     block_m: list[float] = []
     block_pings: list[float] = []
+    imaged: list[float] = []
     start = time.monotonic()
     for fold in range(folds):
         for method in methods:
@@ -371,6 +382,7 @@ def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> K
                 scores[INTERPOLATION].append(value("holdout_interp_mae"))
                 block_m.append(value("holdout_block_m"))
                 block_pings.append(value("holdout_block_pings"))
+                imaged.append(value("holdout_imaged_share"))
             log.info(
                 "verdict: fold %d/%d %s: held-out MAE %.3f m (interpolation %.3f m), %.0f s",
                 fold + 1, folds, method, value("holdout_alt_mae"),
@@ -378,7 +390,12 @@ def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> K
             )  # fmt: skip
     mean = lambda xs: float(np.nanmean(xs)) if np.isfinite(xs).any() else None  # noqa: E731
     verdict = kfold_verdict(
-        scores, subject, mean(block_m), mean(block_pings), time.monotonic() - start
+        scores,
+        subject,
+        mean(block_m),
+        mean(block_pings),
+        time.monotonic() - start,
+        mean(imaged),
     )
     atomic_write_text(
         Path(run_dir) / "verdict.json", json.dumps(verdict.to_dict(), indent=2, sort_keys=True)

@@ -157,6 +157,8 @@ class KFoldVerdict:
         comparisons: the subject against each other method.
         block_m: held-out block length (m); block_pings: mean pings per block.
         seconds: wall time of the fold fits (s), or None.
+        imaged_share: mean share of the held-out points inside the sonar's footprint (0 on
+            single lines: the nadir gap), or None.
     """
 
     subject: str
@@ -165,6 +167,7 @@ class KFoldVerdict:
     block_m: float | None = None
     block_pings: float | None = None
     seconds: float | None = None
+    imaged_share: float | None = None
 
     @property
     def folds(self) -> int:
@@ -228,6 +231,7 @@ class KFoldVerdict:
             "block_m": self.block_m,
             "block_pings": self.block_pings,
             "seconds": self.seconds,
+            "imaged_share": self.imaged_share,
             "outcome": self.outcome,
             "best": self.best,
             "sentence": self.sentence(),
@@ -260,7 +264,11 @@ class KFoldVerdict:
         """Flat numbers for ``metrics.json``: per method ``<prefix><name>/mae_mean``,
         ``mae_std``, ``n``; ``folds``, ``block_m``, ``block_pings``."""
         out: dict[str, float] = {f"{prefix}folds": float(self.folds)}
-        for key, value in (("block_m", self.block_m), ("block_pings", self.block_pings)):
+        for key, value in (
+            ("block_m", self.block_m),
+            ("block_pings", self.block_pings),
+            ("imaged_share", self.imaged_share),
+        ):
             if value is not None:
                 out[f"{prefix}{key}"] = float(value)
         for s in self.scores:
@@ -276,6 +284,7 @@ def kfold_verdict(
     block_m: float | None = None,
     block_pings: float | None = None,
     seconds: float | None = None,
+    imaged_share: float | None = None,
 ) -> KFoldVerdict:
     """The verdict on ``subject`` against every other method of ``scores`` (module
     docstring); ``scores`` as :class:`MethodScores` or ``{name: per-fold MAE}``."""
@@ -293,7 +302,9 @@ def kfold_verdict(
     first = scores[names.index(subject)]
     ordered = [first, *(s for s in scores if s.name != subject)]
     comparisons = tuple(paired_comparison(first, s) for s in ordered[1:])
-    return KFoldVerdict(subject, tuple(ordered), comparisons, block_m, block_pings, seconds)
+    return KFoldVerdict(
+        subject, tuple(ordered), comparisons, block_m, block_pings, seconds, imaged_share
+    )
 
 
 __all__ = [

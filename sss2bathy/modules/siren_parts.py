@@ -22,7 +22,9 @@ K-fold split, ``holdout_block_m``, ``holdout_folds``, ``holdout_fold``
 :func:`~sss2bathy.eval.maps.coverage_stats` of the written map (``imaged_area_m2``,
 ``measured_area_m2``, ``written_area_m2``, ``extrapolated_share``) and
 ``track_region_extrapolated_share`` (the share of the older track-region coverage,
-:func:`~sss2bathy.eval.maps.coverage_mask`, that nothing measured).
+:func:`~sss2bathy.eval.maps.coverage_mask`, that nothing measured) and, with held-out
+points, ``holdout_imaged_share`` (the share of them inside the sonar footprint: on a single
+line 0, its own nadir gap).
 """
 
 from __future__ import annotations
@@ -140,6 +142,13 @@ class MapScorer:
             stats["track_region_extrapolated_share"] = coverage_stats(like, old, imaged, alt)[
                 "extrapolated_share"
             ]
+            if scorer.holdout_points.numel():
+                # held-out nadir points the sidescan imaged (other lines' swaths; a line's
+                # own nadir gap never is): 0 = the sidescan reaches them only through the
+                # map's continuity
+                held = altimeter_cells_index(like, scorer.holdout_points[:, :2].numpy())
+                inside = imaged[held[:, 1], held[:, 0]] if held.size else np.zeros(0, bool)
+                stats["holdout_imaged_share"] = float(inside.mean()) if inside.size else 0.0
             scorer.coverage_metrics = stats
         return scorer
 
@@ -173,6 +182,16 @@ class MapScorer:
         return MapEvaluation(
             pred, metrics, int(epoch), self.truth, self.region, coverage=self.coverage
         )
+
+
+def altimeter_cells_index(grid: BathyGrid, xy: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` column and row of the cell of each point ``xy (N, 2)`` clipped to the
+    grid (the cells of :func:`~sss2bathy.eval.maps.altimeter_cells`)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    ix = np.floor((xy[:, 0] - grid.x0) / grid.cell_size + 0.5).astype(np.int64)
+    iy = np.floor((xy[:, 1] - grid.y0) / grid.cell_size + 0.5).astype(np.int64)
+    ny, nx = grid.shape
+    return np.stack([np.clip(ix, 0, nx - 1), np.clip(iy, 0, ny - 1)], 1)
 
 
 def swath_inputs(datamodule: Any, uses_sidescan: bool = True) -> dict[str, np.ndarray] | None:

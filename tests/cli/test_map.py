@@ -96,6 +96,7 @@ def test_map_summary_shows_coverage_the_k_fold_table_and_the_verdict(tmp_path):
         block_m=7.0,
         block_pings=57.0,
         seconds=300.0,
+        imaged_share=0.0,
     )
     metrics = {
         "final/imaged_area_m2": 2458.5,
@@ -112,6 +113,7 @@ def test_map_summary_shows_coverage_the_k_fold_table_and_the_verdict(tmp_path):
         assert label in text
     assert "0.174 +- 0.080" in text  # the sidescan fit's mean +- std over the folds
     assert "VERDICT: inconclusive" in text and "every altimeter point" in text
+    assert "inside the sonar's footprint: 0 % (a line's nadir gap" in text
     assert result.score() == pytest.approx(0.174)
 
 
@@ -302,6 +304,7 @@ def test_sss2bathy_map_k_fold_verdict_end_to_end(tmp_path, tiny_xtf):
     for scores in verdict["methods"].values():
         assert len(scores["mae_per_fold"]) == 2 and np.isfinite(scores["mae_per_fold"]).all()
     assert verdict["outcome"] in ("helped", "did not help", "inconclusive")
+    assert 0.0 <= verdict["imaged_share"] <= 1.0
     for fold in (0, 1):
         assert (run / "verdict" / "siren_heights_only" / f"fold{fold}" / "map.tif").is_file()
     metrics = json.loads((run / "metrics.json").read_text())
