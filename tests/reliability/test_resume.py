@@ -263,38 +263,43 @@ class SignalAt(pl.Callback):
             os.kill(os.getpid(), self.sig)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize(
+    "task, sig", [("siren", signal.SIGTERM), ("siren", signal.SIGINT), ("cnn", signal.SIGTERM)]
+)
 def test_signal_mid_epoch_saves_exits_with_the_signal_status_and_resumes_exactly(
-    tmp_path, plane_survey, monkeypatch, capsys, caplog, sig
+    tmp_path, plane_survey, hills_survey, monkeypatch, capsys, caplog, task, sig
 ):
-    # 5 steps per epoch; the signal after step 7 (epoch 1, batch 2): last.ckpt is saved at
-    # that batch end (the default callbacks alone would have only epoch 0's), the fit ends
-    # with 128 + the signal's number and one line on stderr saying how to resume
-    base = siren_overrides(plane_survey, tmp_path) + ["trainer.max_epochs=3"]
+    # the signal after the second step of epoch 1 (SIREN: 5 steps an epoch, CNN: 11):
+    # last.ckpt is saved at that batch end (the default callbacks alone would have only
+    # epoch 0's), the fit ends with 128 + the signal's number and one stderr line saying
+    # how to resume
+    base = _task_overrides(task, plane_survey, hills_survey, tmp_path) + ["trainer.max_epochs=3"]
+    at = 7 if task == "siren" else 13
     full, part = tmp_path / "full", tmp_path / "part"
-    m_full = _run(base + [f"model.output_dir={full / 'map'}"], full)
+    maps = {d: [f"model.output_dir={d / 'map'}"] if task != "cnn" else [] for d in (full, part)}
+    m_full = _run(base + maps[full], full)
     original = instantiate_module.instantiate_callbacks
     monkeypatch.setattr(
-        instantiate_module, "instantiate_callbacks", lambda c: original(c) + [SignalAt(7, sig)]
+        instantiate_module, "instantiate_callbacks", lambda c: original(c) + [SignalAt(at, sig)]
     )
     previous = signal.getsignal(signal.SIGINT)
     capsys.readouterr()
     with pytest.raises(SystemExit) as stop:
-        train(compose_run(base + [f"model.output_dir={part / 'map'}"], part), part)
+        train(compose_run(base + maps[part], part), part)
     monkeypatch.undo()
     assert stop.value.code == 128 + sig
     assert signal.getsignal(signal.SIGINT) is previous  # the SIGINT handler is given back
     last = part / "checkpoints" / "last.ckpt"
     (line,) = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert line == (
-        f"interrupted by {sig.name} at epoch 1, step 7: saved {last}; resume with the same "
+        f"interrupted by {sig.name} at epoch 1, step {at}: saved {last}; resume with the same "
         f"command and ckpt_path=last hydra.run.dir={part}"
     )
-    assert torch.load(last, weights_only=True)["global_step"] == 7
+    assert torch.load(last, weights_only=True)["global_step"] == at
     assert not (part / "run.lock").exists()
     with caplog.at_level("INFO", logger="sss2bathy.train"):
-        m_part = _run(base + [f"model.output_dir={part / 'map'}", "ckpt_path=last"], part)
-    assert f"resuming from {last} at epoch 1 (step 7)" in caplog.text
+        m_part = _run(base + maps[part] + ["ckpt_path=last"], part)
+    assert f"resuming from {last} at epoch 1 (step {at})" in caplog.text
     _assert_same_run(full, part, m_full, m_part)
 
 
