@@ -1,11 +1,13 @@
 """A map run of a real line beside its sidescan mosaic: does the map show what the sidescan sees?
 
     .venv/bin/python studies/real_line_figure.py RUN_DIR SURVEY_DIR OUT.png [--title TEXT]
+        [--before RUN_DIR --before-label TEXT]
 
 ``RUN_DIR``: an ``sss2bathy-map`` run folder (its ``map.npz``); ``SURVEY_DIR``: the imported
 survey (``data/xtf_<name>``). Three panels on the map's grid: the flat-seabed sidescan
 mosaic (:func:`sss2bathy.eval.mosaic.build_mosaic`, shadows kept), the map's heights over
-its hillshade, and the hillshade alone; the map's relief in the title.
+its hillshade, and the hillshade alone (with ``--before``, a fourth: another run's
+hillshade, e.g. the same line with the scale's own settings); the maps' relief in the titles.
 """
 
 from __future__ import annotations
@@ -31,6 +33,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("survey_dir")
     p.add_argument("out")
     p.add_argument("--title", default="")
+    p.add_argument("--before", default=None, help="another run folder: its hillshade too")
+    p.add_argument("--before-label", default="before")
+    p.add_argument("--label", default="map")
+    p.add_argument("--zoom", nargs=4, type=float, metavar=("X0", "X1", "Y0", "Y1"))
     args = p.parse_args(argv)
 
     import matplotlib
@@ -41,9 +47,16 @@ def main(argv: list[str] | None = None) -> None:
     from sss2bathy.eval.mosaic import build_mosaic
     from sss2bathy.survey import Survey
 
-    d = np.load(Path(args.run_dir) / "map.npz")
+    def load(run_dir: str) -> tuple[np.ndarray, dict]:
+        d = np.load(Path(run_dir) / "map.npz")
+        return np.where(d["region"], d["heights"], np.nan).astype(np.float64), d
+
+    def shaded(z: np.ndarray) -> np.ndarray:
+        filled = np.where(np.isfinite(z), z, np.nanmedian(z))
+        return np.where(np.isfinite(z), hillshade(filled, cell), np.nan)
+
+    z, d = load(args.run_dir)
     cell = float(d["cell_size"])
-    z = np.where(d["region"], d["heights"], np.nan).astype(np.float64)
     ny, nx = z.shape
     x0, y0 = float(d["x0"]), float(d["y0"])
     extent = (x0 - cell / 2, x0 + (nx - 0.5) * cell, y0 - cell / 2, y0 + (ny - 0.5) * cell)
@@ -58,31 +71,42 @@ def main(argv: list[str] | None = None) -> None:
     )
     vals = mg.heights
     lo, hi = np.nanpercentile(vals, [1, 99])
-    filled = np.where(np.isfinite(z), z, np.nanmedian(z))
-    shade = np.where(np.isfinite(z), hillshade(filled, cell), np.nan)
+    shade = shaded(z)
     zlo, zhi = np.nanpercentile(z, [0.5, 99.5])
 
-    fig, axs = plt.subplots(1, 3, figsize=(13.5, 4.8), sharex=True, sharey=True)
+    n = 3 if args.before is None else 4
+    fig, axs = plt.subplots(1, n, figsize=(4.5 * n, 4.8), sharex=True, sharey=True)
     axs[0].imshow(vals, origin="lower", extent=m_ext, cmap="copper", vmin=lo, vmax=hi)
     axs[0].set_title("sidescan mosaic (flat seabed)")
     axs[1].imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
     im = axs[1].imshow(z, origin="lower", extent=extent, cmap="viridis", vmin=zlo, vmax=zhi,
                        alpha=0.6)  # fmt: skip
     fig.colorbar(im, ax=axs[1], shrink=0.8, label="height z (m)")
-    axs[1].set_title(f"map (relief {zhi - zlo:.1f} m, 0.5-99.5 %)")
+    axs[1].set_title(f"{args.label} (relief {zhi - zlo:.1f} m, 0.5-99.5 %)")
     axs[2].imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
-    axs[2].set_title("map hillshade")
+    axs[2].set_title(f"{args.label}: hillshade")
+    if args.before is not None:
+        zb, db = load(args.before)
+        if zb.shape != z.shape or float(db["cell_size"]) != cell:
+            raise SystemExit(f"--before: expected a map on the same grid, found {zb.shape}")
+        blo, bhi = np.nanpercentile(zb, [0.5, 99.5])
+        axs[3].imshow(shaded(zb), origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
+        axs[3].set_title(f"{args.before_label}: hillshade (relief {bhi - blo:.1f} m)")
     for ax in axs:
         for line in survey.lines:
             ax.plot(line.position[:, 0], line.position[:, 1], "r-", lw=0.6)
         ax.set_xlabel("x East (m, local)")
+        ax.title.set_fontsize(9)
+        if args.zoom:
+            ax.set_xlim(*args.zoom[:2])
+            ax.set_ylim(*args.zoom[2:])
     axs[0].set_ylabel("y North (m, local)")
     if args.title:
         fig.suptitle(args.title)
     fig.tight_layout()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=72)
+    fig.savefig(out, dpi=66)
     print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
 
 
