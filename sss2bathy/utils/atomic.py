@@ -144,12 +144,12 @@ def folder_digest_problems(folder: str | Path, name: str = FOLDER_DIGEST) -> lis
 
 # ----------------------------------------------------------------------------- failures
 class WriteError(OSError):
-    """A file that could not be written (full disk, read-only or locked folder): its
-    message is one line naming the file, the reason and the free space."""
+    """A file that could not be written (full disk, read-only folder): an ``OSError`` with
+    the failure's ``errno``, the file as ``filename`` and, as its text, one line naming the
+    file, the reason and the free space (:func:`write_error`)."""
 
-    def __init__(self, message: str, errno_: int | None = None) -> None:
-        super().__init__(message)
-        self.errno = errno_
+    def __init__(self, message: str, errno_: int | None, strerror: str, filename: str) -> None:
+        super().__init__(errno_, strerror, filename)
         self.message = message
 
     def __str__(self) -> str:
@@ -190,6 +190,8 @@ def write_error(path: str | Path, err: OSError, what: str = "file") -> WriteErro
     return WriteError(
         f"{what} {path}: not written ({reason}); {space}; nothing partial was left{kept}",
         err.errno,
+        reason,
+        str(path),
     )
 
 
@@ -197,8 +199,9 @@ def write_error(path: str | Path, err: OSError, what: str = "file") -> WriteErro
 LOCK_NAME = "run.lock"
 
 
-class FolderLockedError(WriteError):
-    """Another live process holds the folder's :func:`folder_lock`."""
+class FolderLockedError(ValueError):
+    """Another live process holds the folder's :func:`folder_lock` (the folder chosen is
+    busy: a user error, one line)."""
 
 
 def _lock_holder(text: str) -> dict[str, Any]:
@@ -233,7 +236,6 @@ def folder_lock(folder: str | Path, name: str = LOCK_NAME) -> Iterator[Path]:
         yield Path(folder) / name
         return
     import datetime
-    import errno
     import logging
     import socket
 
@@ -249,8 +251,7 @@ def folder_lock(folder: str | Path, name: str = LOCK_NAME) -> Iterator[Path]:
             os.close(fd)
             raise FolderLockedError(
                 f"{path.parent}: another run is writing this folder ({_describe(holder)}; "
-                f"lock {path}); wait for it to end or pick another folder (hydra.run.dir=)",
-                errno.EBUSY,
+                f"lock {path}); wait for it to end or pick another folder (hydra.run.dir=)"
             ) from None
         except OSError as err:
             os.close(fd)
