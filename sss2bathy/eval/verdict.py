@@ -200,9 +200,11 @@ class KFoldVerdict:
                 f"blocks in {self.folds} folds: the sidescan helped."
             )
         if self.outcome == "did not help":
+            won = [c for c in self.comparisons if c.winner == self.subject]
+            also = f" (though it beats {others(won)})" if won else ""
             return (
                 f"VERDICT: {others(lost)} beats {subject} on held-out altimeter blocks in "
-                f"{self.folds} folds: the sidescan did NOT help."
+                f"{self.folds} folds: the sidescan did NOT help{also}."
             )
         best = LABELS.get(self.best, self.best) if self.best else "none"
         return (

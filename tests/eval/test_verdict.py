@@ -52,6 +52,14 @@ def test_a_method_clearly_better_in_every_fold_is_named():
     assert worse.comparisons[0].winner == HEIGHTS_ONLY
     assert worse.outcome == "did not help"
     assert "heights only" in worse.sentence() and "did NOT help" in worse.sentence()
+    mixed = kfold_verdict(
+        {"siren_lambert": base, HEIGHTS_ONLY: base + 0.1, INTERPOLATION: base - 0.05},
+        "siren_lambert",
+    )
+    assert mixed.outcome == "did not help"
+    assert mixed.sentence().endswith(
+        "did NOT help (though it beats heights only (SIREN, no sidescan))."
+    )
 
 
 def test_the_spread_between_folds_does_not_hide_a_paired_difference():
