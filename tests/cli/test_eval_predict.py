@@ -48,12 +48,26 @@ def test_eval_reproduces_the_fit_metrics_from_checkpoint_and_map(tmp):
     )
     train(cfg, run_dir=run)
     fitted = json.loads((run / "metrics.json").read_text())
-    for source in (f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"map_path={run / 'map.tif'}"):
-        out = tmp / f"eval_{source.split('=')[0]}"
-        metrics = evaluate(_cfg("eval", tmp, [source]), out)
-        assert metrics["mae"] == pytest.approx(fitted["val/map_mae_m"], rel=1e-4)
-        assert metrics["grad_cs"] == pytest.approx(fitted["val/map_grad_cs"], rel=1e-4)
-        assert (out / "map.tif").is_file() and (out / "error.png").is_file()
+    # the checkpoint's map is scored on the fit's own region and reproduces its metrics
+    out = tmp / "eval_ckpt_path"
+    metrics = evaluate(_cfg("eval", tmp, [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]), out)
+    assert metrics["mae"] == pytest.approx(fitted["val/map_mae_m"], rel=1e-4)
+    assert metrics["grad_cs"] == pytest.approx(fitted["val/map_grad_cs"], rel=1e-4)
+    assert metrics["n_cells"] == fitted["final/n_cells"]
+    assert (out / "map.tif").is_file() and (out / "error.png").is_file()
+    # the written map.tif holds data only where the sonar imaged or an altimeter point lies:
+    # scored from it, the same heights on the cells it holds
+    out_map = tmp / "eval_map_path"
+    from_map = evaluate(_cfg("eval", tmp, [f"map_path={run / 'map.tif'}"]), out_map)
+    assert 0 < from_map["n_cells"] < metrics["n_cells"]
+    import rasterio
+
+    with rasterio.open(out / "map.tif") as a, rasterio.open(out_map / "map.tif") as b:
+        za, zb = a.read(1, masked=True), b.read(1, masked=True)
+    both = ~np.ma.getmaskarray(za) & ~np.ma.getmaskarray(zb)
+    assert both.sum() >= from_map["n_cells"]
+    np.testing.assert_allclose(zb.data[both], za.data[both], atol=1e-4)
+    assert (out_map / "error.png").is_file()
     with pytest.raises(ValueError, match="exactly one"):
         evaluate(_cfg("eval", tmp, []), tmp / "eval_none")
 
