@@ -61,7 +61,7 @@ HELP = CliHelp(
         "held-out altimeter error beside that of interpolating the altimeter."
     ),
     keys=(
-        ("files=PATH", "a folder of .xtf files, one file, a glob, or a list [a,b]"),
+        ("files=PATH", "a folder of .xtf/.jsf files, one file, a glob, or a list [a,b]"),
         (
             "method=NAME",
             f"{', '.join(MAP_METHODS)} (default: siren_cnn_n2d with a "
@@ -74,6 +74,10 @@ HELP = CliHelp(
             "survey.tilt_deg=20 survey.altitude_tolerance_m=null",
         ),
         ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
+        (
+            "map_settings=NAME",
+            "scale (default: smooth) | survey (finer detail from the sonar's range)",
+        ),
         ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
         (
             "verdict.folds=K",
@@ -129,10 +133,25 @@ def map_experiment(cfg: Mapping[str, Any]) -> str:
     return str(method)
 
 
+MAP_SETTINGS = ("scale", "survey")
+
+
+def map_settings_choice(cfg: Mapping[str, Any]) -> str:
+    """``map_settings``: ``scale`` (the scale preset's SIREN settings) or ``survey`` (omega0
+    and steps from the survey's sonar range and extent, :mod:`sss2bathy.cli.map_settings`)."""
+    choice = cfg.get("map_settings") or "scale"
+    if choice not in MAP_SETTINGS:
+        raise ValueError(
+            f"map_settings: expected one of {', '.join(MAP_SETTINGS)}, found {str(choice)!r}"
+        )
+    return str(choice)
+
+
 def check_map_config(cfg: DictConfig) -> None:
-    """What ``sss2bathy-map`` checks before its run folder is made: the method and
-    ``verdict.folds``."""
+    """What ``sss2bathy-map`` checks before its run folder is made: the method,
+    ``map_settings`` and ``verdict.folds``."""
     map_experiment(cfg)
+    map_settings_choice(cfg)
     verdict_folds(cfg)
 
 
@@ -182,9 +201,9 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         train_cfg.paths.output_dir = str(cfg.paths.output_dir)
         train_cfg.model.output_dir = str(run_dir)
         train_cfg.run_name = "map"
-        # the SIREN's omega0 / steps for the survey's scale (cli/map_settings.py), except
-        # what the user set in overrides; +map_settings=scale keeps the scale's own
-        if cfg.get("map_settings") != "scale":
+        # map_settings=survey: the SIREN's omega0 / steps from the survey's range and extent
+        # (cli/map_settings.py), except what the user set in overrides; scale: the scale's own
+        if map_settings_choice(cfg) == "survey":
             from sss2bathy.cli.map_settings import apply_map_settings, scale_of_xtf_files
 
             user = [str(o) for o in cfg.get("overrides") or []]
@@ -321,6 +340,8 @@ FOLD_OVERRIDES = (
     "callbacks=none",
     "trainer.enable_progress_bar=false",
     "+trainer.enable_model_summary=false",
+    # a fold's fit is scored, not resumed: no checkpoints in the map's folder
+    "+trainer.enable_checkpointing=false",
 )
 
 

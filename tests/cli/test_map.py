@@ -16,9 +16,11 @@ from omegaconf import OmegaConf
 
 from sss2bathy.cli.map import (
     MapResult,
+    check_map_config,
     default_survey_name,
     fold_config,
     map_experiment,
+    map_settings_choice,
     train_overrides,
     verdict_folds,
 )
@@ -128,11 +130,22 @@ def test_fold_fits_are_quiet_unless_the_user_says_otherwise():
         "trainer.max_epochs=3",
         "callbacks=none",
         "+trainer.enable_model_summary=false",
+        "+trainer.enable_checkpointing=false",
     ]
     for bad in (-1, 2.5, "five"):
         cfg.verdict.folds = bad
         with pytest.raises(ValueError, match="verdict.folds: expected 0 or 1"):
             verdict_folds(cfg)
+
+
+def test_map_settings_choice_is_checked():
+    cfg = OmegaConf.load(CONF / "map.yaml")
+    assert map_settings_choice(cfg) == "scale"  # the scale preset's settings by default
+    cfg.map_settings = "survey"
+    assert map_settings_choice(cfg) == "survey"
+    cfg.map_settings = "surevy"
+    with pytest.raises(ValueError, match="map_settings: expected one of scale, survey"):
+        check_map_config(cfg)
 
 
 # ------------------------------------------------------------------ end to end
