@@ -36,6 +36,7 @@ def skip_unless_survey_files(cfg) -> None:
     if grid is not None:
         skip_unless_real_file(grid)
 
+
 # Property tests draw the same examples on every run (CI must not fail at random); set
 # HYPOTHESIS_PROFILE=explore for fresh random examples.
 settings.register_profile("default", derandomize=True, print_blob=True)
