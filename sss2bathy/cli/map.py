@@ -85,6 +85,7 @@ HELP = CliHelp(
             "(5; 0 = one draw of holdout.fraction)",
         ),
         ("holdout.block_m=M", "the verdict's held-out blocks, m of track (null: auto)"),
+        ("mosaic.placement=P", "the sidescan mosaic: map (draped on the map) | flat | none"),
         ("logger=NAME", "tensorboard (default) | none"),
         ("torch_threads=N", "CPU threads of the fit (default: torch's)"),
         (
@@ -152,6 +153,7 @@ def check_map_config(cfg: DictConfig) -> None:
     ``map_settings`` and ``verdict.folds``."""
     map_experiment(cfg)
     map_settings_choice(cfg)
+    mosaic_placement(cfg)
     verdict_folds(cfg)
 
 
@@ -229,6 +231,11 @@ class MapResult:
             "map (GeoTIFF)": self.run_dir / "map.tif",
             "map (PNG)": self.run_dir / "map.png",
             "metrics": self.run_dir / "metrics.json",
+            **(
+                {"mosaic (GeoTIFF)": self.run_dir / "mosaic.tif"}
+                if (self.run_dir / "mosaic.tif").is_file()
+                else {}
+            ),
         }
 
     def metric(self, name: str) -> float | None:
@@ -295,7 +302,7 @@ class MapResult:
         """What the command prints: where the files are, the coverage and the held-out
         scores (the K-fold table and verdict with ``verdict.folds`` >= 2)."""
         lines = [f"sss2bathy-map: {self.experiment} on survey '{self.survey_name}'"]
-        lines += [f"  {label + ':':15s}{path}" for label, path in self.paths.items()]
+        lines += [f"  {label + ':':18s}{path}" for label, path in self.paths.items()]
         lines += self.coverage_lines()
         fit, interp = self.metric("holdout_alt_mae"), self.metric("holdout_interp_mae")
         if self.verdict is not None:
@@ -448,6 +455,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     if verdict is not None:
         metrics.update(verdict.metrics())
         add_to_metrics_json(Path(run_dir) / "metrics.json", verdict.metrics())
+    write_map_mosaic(cfg, train_cfg, Path(run_dir))
     return MapResult(
         Path(run_dir),
         map_experiment(cfg),
@@ -456,6 +464,48 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
         result.has_mbes,
         verdict,
     )
+
+
+MOSAIC_PLACEMENTS = ("map", "flat", "none")
+
+
+def mosaic_placement(cfg: Mapping[str, Any]) -> str:
+    """``mosaic.placement``: ``map`` (each bin draped on the fitted map), ``flat`` (a flat
+    seabed at the altimeter depth) or ``none``."""
+    node = cfg.get("mosaic") or {}
+    choice = str(node.get("placement") or "none")
+    if choice not in MOSAIC_PLACEMENTS:
+        raise ValueError(
+            f"mosaic.placement: expected one of {', '.join(MOSAIC_PLACEMENTS)}, found {choice!r}"
+        )
+    return choice
+
+
+def write_map_mosaic(cfg: DictConfig, train_cfg: DictConfig, run_dir: Path) -> list[Path]:
+    """The run's sidescan mosaic (``mosaic.tif`` + ``.png``, :mod:`sss2bathy.eval.mosaic`):
+    the survey's bins draped on the fitted map (``map.npz``) or on a flat seabed."""
+    placement = mosaic_placement(cfg)
+    if placement == "none":
+        return []
+    import numpy as np
+
+    from sss2bathy.eval.mosaic import write_run_mosaic
+    from sss2bathy.survey import BathyGrid, Survey
+
+    survey = Survey.load(Path(str(train_cfg.paths.data_dir)) / str(train_cfg.data.survey.name))
+    grid = None
+    if placement == "map":
+        with np.load(run_dir / "map.npz", allow_pickle=False) as saved:
+            grid = BathyGrid(
+                saved["heights"].astype(np.float32),
+                float(saved["x0"]),
+                float(saved["y0"]),
+                float(saved["cell_size"]),
+            )
+    options = {"resolution": float(cfg.mosaic.get("resolution") or 0.1)}
+    written = write_run_mosaic(run_dir, survey, grid=grid, cfg=options)
+    log.info("sidescan mosaic (%s placement) written to %s", placement, run_dir / "mosaic.tif")
+    return written
 
 
 def add_to_metrics_json(path: Path, values: Mapping[str, float]) -> None:

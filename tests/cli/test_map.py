@@ -21,6 +21,7 @@ from sss2bathy.cli.map import (
     fold_config,
     map_experiment,
     map_settings_choice,
+    mosaic_placement,
     train_overrides,
     verdict_folds,
 )
@@ -136,6 +137,17 @@ def test_fold_fits_are_quiet_unless_the_user_says_otherwise():
         cfg.verdict.folds = bad
         with pytest.raises(ValueError, match="verdict.folds: expected 0 or 1"):
             verdict_folds(cfg)
+
+
+def test_mosaic_placement_is_checked():
+    cfg = OmegaConf.load(CONF / "map.yaml")
+    assert mosaic_placement(cfg) == "map"  # draped on the fitted map by default
+    for choice in ("flat", "none"):
+        cfg.mosaic.placement = choice
+        assert mosaic_placement(cfg) == choice
+    cfg.mosaic.placement = "draped"
+    with pytest.raises(ValueError, match="mosaic.placement: expected one of map, flat, none"):
+        check_map_config(cfg)
 
 
 def test_map_settings_choice_is_checked():
@@ -282,6 +294,14 @@ def test_sss2bathy_map_with_a_cnn_checkpoint(tmp_path, tiny_xtf):
     assert "siren_cnn_n2d" in proc.stdout
     metrics = json.loads((run / "metrics.json").read_text())
     assert np.isfinite(metrics["final/holdout_alt_mae"]) and (run / "map.tif").is_file()
+    # the sidescan mosaic draped on the map, in the map's CRS, over the map's extent
+    import rasterio
+
+    with rasterio.open(run / "mosaic.tif") as mosaic, rasterio.open(run / "map.tif") as fitted:
+        assert mosaic.crs == fitted.crs
+        inside = rasterio.coords.disjoint_bounds(mosaic.bounds, fitted.bounds) is False
+        assert inside and np.isfinite(mosaic.read(1, masked=True).compressed()).any()
+    assert "mosaic (GeoTIFF)" in proc.stdout
     # a missing checkpoint is refused by name
     proc = _run(
         "sss2bathy.cli.map",
