@@ -31,6 +31,11 @@ Masks: the result's mask is the sonar-only mask; ``draped`` lines (optional, for
 and scoring only) are OR-ed into the returned mask and never change a prediction.
 Invalid bins hold NaN in ``n_lat``.
 
+The survey's sonar is compared with the one the checkpoint was trained on (its
+``sonar_envelope``, :mod:`sss2bathy.data.sonar_envelope`): one WARNING names each setting
+outside the trained range (or says a checkpoint records none); the normals are computed all
+the same.
+
 Results are cached per line under ``survey_dir/predictions/<key>/<line>.npz`` where ``key``
 hashes the checkpoint file's content, the window size and overlap (the one used), the input
 channels, the sonar-mask parameters and the precision (only when not fp32, so older float32
@@ -60,6 +65,8 @@ from sss2bathy.data.masks import (
     sonar_normalized_intensity,
     sonar_only_mask,
 )
+from sss2bathy.data.sonar_envelope import CHECKPOINT_KEY as SONAR_ENVELOPE_KEY
+from sss2bathy.data.sonar_envelope import envelope_warning
 from sss2bathy.data.windows import line_windows
 from sss2bathy.models.normal_cnn import channel_norm_copy
 from sss2bathy.survey import MASK_VALID, Survey
@@ -86,6 +93,8 @@ CPU_INFERENCE_BATCH = 8
 CACHE_VERSION = 2  # 2: sonar-only input normalisation, input channels in the key
 #: Inference precisions (``predict_normals(precision=...)``): the network's dtype, if not fp32.
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
+#: Sonar warnings already given in this process, so one survey's several calls (splits) warn once.
+_SONAR_WARNED: set[str] = set()
 
 
 # --------------------------------------------------------------------- checkpoints
@@ -433,6 +442,23 @@ def checkpoint_input_spec(ckpt_path: str | Path) -> dict[str, Any]:
     return {"channels": channels, "sonar_mask": mask.to_dict()}
 
 
+def checkpoint_sonar_envelope(ckpt_path: str | Path) -> Any:
+    """The training sonar a checkpoint stores (``sonar_envelope``), or None (older ones)."""
+    return _checkpoint(ckpt_path).get(SONAR_ENVELOPE_KEY)
+
+
+def warn_sonar_outside(ckpt_path: str | Path, survey: Survey, line_names: Sequence[str]) -> None:
+    """Log one WARNING when the lines' sonar lies outside the checkpoint's training sonar
+    (:func:`~sss2bathy.data.sonar_envelope.envelope_warning`) or the checkpoint records
+    none; the same warning is given once per process."""
+    message = envelope_warning(
+        checkpoint_sonar_envelope(ckpt_path), survey, line_names, str(ckpt_path)
+    )
+    if message is not None and message not in _SONAR_WARNED:
+        _SONAR_WARNED.add(message)
+        log.warning("%s", message)
+
+
 def _window_params(window_cfg: Mapping[str, Any]) -> tuple[int, int | None, float, int]:
     if not isinstance(window_cfg, Mapping):
         raise ValueError(f"window_cfg: expected a mapping, found {type(window_cfg).__name__}")
@@ -540,6 +566,7 @@ def predict_normals(
     ):
         raise ValueError(f"batch_size: expected null or an integer >= 1, found {batch_size!r}")
     spec = checkpoint_input_spec(ckpt_path)
+    warn_sonar_outside(ckpt_path, survey, line_names)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if batch_size is None:
         batch_size = CPU_INFERENCE_BATCH if torch.device(device).type == "cpu" else train_batch

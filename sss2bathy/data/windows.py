@@ -50,6 +50,7 @@ from sss2bathy.data.masks import (
     relative_channel,
     sonar_normalized_intensity,
 )
+from sss2bathy.data.sonar_envelope import describe, sonar_envelope
 from sss2bathy.draping import DrapeConfig, DrapedLine, drape_survey
 from sss2bathy.survey import SidescanLine, Survey
 from sss2bathy.utils.checks import require_bool, require_int, require_number
@@ -460,6 +461,10 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             (:class:`~sss2bathy.data.masks.SonarMaskConfig` fields; ``None``: defaults).
         input_channels: the network's input channels (``None``: ``[intensity]``); stored in
             the checkpoint with ``sonar_mask`` so prediction builds the same inputs.
+
+    ``setup("fit")`` records the training lines' sonar in :attr:`sonar_envelope`, which
+    :class:`~sss2bathy.modules.normal_cnn.NormalCNNModule` stores in its checkpoints (the
+    survey the CNN's normals are computed for is compared with it).
     """
 
     def __init__(
@@ -545,6 +550,9 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         self.test_set_names: list[str] = []
         self.train_lines: list[str] = []
         self.val_lines: list[str] = []
+        #: the training lines' sonar (:func:`~sss2bathy.data.sonar_envelope.sonar_envelope`),
+        #: set by ``setup("fit")``; the CNN module stores it in its checkpoints
+        self.sonar_envelope: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ data
     def _load(self, survey_cfg: Mapping[str, Any]) -> tuple[Survey, Path]:
@@ -615,6 +623,13 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             pick = set(np.random.default_rng(self.seed).permutation(len(train))[:n_val].tolist())
             self.val_lines = [n for i, n in enumerate(train) if i in pick]
             self.train_lines = [n for i, n in enumerate(train) if i not in pick]
+            self.sonar_envelope = sonar_envelope(survey, self.train_lines)
+            log.info(
+                "training sonar (%d lines of '%s'): %s",
+                len(self.train_lines),
+                survey.name,
+                describe(self.sonar_envelope["settings"]),
+            )
             lines = self._window_lines(survey, folder, self.train_lines + self.val_lines)
             by_name = {ln.name: ln for ln in lines}
             self.train_set = self._dataset(

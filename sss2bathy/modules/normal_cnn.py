@@ -24,6 +24,7 @@ from torch import nn
 
 from sss2bathy.callbacks import NormalImageLogger
 from sss2bathy.callbacks.hparams import flatten
+from sss2bathy.data.sonar_envelope import CHECKPOINT_KEY as SONAR_ENVELOPE_KEY
 from sss2bathy.eval.cnn_table import NLAT_PREFIX
 from sss2bathy.losses.normal import NormalLoss
 from sss2bathy.metrics.normal import NormalMetrics
@@ -64,7 +65,10 @@ class NormalCNNModule(pl.LightningModule):
 
     The checkpoint's hyper-parameters hold plain values only (``net_config``: the network's
     class path and arguments), so ``torch.load(weights_only=True)`` can read it and
-    :func:`sss2bathy.modules.predict.predict_normals` can rebuild the network.
+    :func:`sss2bathy.modules.predict.predict_normals` can rebuild the network. The training
+    lines' sonar (the datamodule's ``sonar_envelope``, a plain dict) is stored under the
+    checkpoint's ``sonar_envelope`` key, so the CNN's normals for a survey recorded with
+    another sonar come with a warning (:mod:`sss2bathy.data.sonar_envelope`).
     """
 
     def __init__(
@@ -113,6 +117,7 @@ class NormalCNNModule(pl.LightningModule):
         self.val_metrics = NormalMetrics(prefix=f"val/{NLAT_PREFIX}")
         self.test_metrics = nn.ModuleDict()
         self.final_metrics: dict[str, float] = {}
+        self.sonar_envelope: dict[str, Any] | None = None
 
     # ----------------------------------------------------------------- model
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
@@ -242,6 +247,22 @@ class NormalCNNModule(pl.LightningModule):
 
     def on_fit_start(self) -> None:
         self.final_metrics = {}
+        dm = getattr(self.trainer, "datamodule", None)
+        envelope = getattr(dm, "sonar_envelope", None)
+        if envelope is not None:
+            self.sonar_envelope = envelope
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Store the training sonar (the datamodule's, else the one of the checkpoint this
+        module was loaded from) as plain values."""
+        trainer = self._trainer
+        envelope = getattr(getattr(trainer, "datamodule", None), "sonar_envelope", None)
+        envelope = envelope if envelope is not None else self.sonar_envelope
+        if envelope is not None:
+            checkpoint[SONAR_ENVELOPE_KEY] = envelope
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.sonar_envelope = checkpoint.get(SONAR_ENVELOPE_KEY)
 
     def on_fit_end(self) -> None:
         self.record_final_metrics()
