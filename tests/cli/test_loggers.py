@@ -186,6 +186,7 @@ def test_a_run_that_fails_in_setup_leaves_no_empty_tensorboard_run(tiny_root, ti
         ["experiment=siren_cnn_n2d", "logger=tensorboard", "data.cnn_checkpoint=/no/such.ckpt"],
     )
     assert proc.returncode != 0 and "/no/such.ckpt" in proc.stderr
-    (run,) = (tiny_root / "outputs" / "runs" / "siren_cnn_n2d").iterdir()
-    assert (run / "siren_cnn_n2d.log").is_file()  # the run folder keeps its log
-    assert not (run / "tensorboard").exists()  # ... but TensorBoard shows no empty run
+    # a run that failed before writing anything leaves no run folder, so TensorBoard shows
+    # no empty run
+    runs = tiny_root / "outputs" / "runs" / "siren_cnn_n2d"
+    assert not runs.exists() or not any(runs.rglob("tensorboard"))
