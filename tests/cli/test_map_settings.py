@@ -18,10 +18,11 @@ from sss2bathy.cli.map_settings import (
     scale_of_xtf_files,
     survey_scale,
 )
+from tests.conftest import REALDATA
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
-REAL_LINE = ROOT.parent / "shared" / "realdata" / "scotsman-iver2.xtf"
+REAL_LINE = REALDATA / "scotsman-iver2.xtf"
 
 
 def scale(range_m=30.0, half=(75.0, 75.0), pings=720) -> SurveyScale:
@@ -96,7 +97,9 @@ def test_apply_leaves_what_the_user_set():
     assert "model.siren.omega0" not in applied and OmegaConf.select(cfg, "model.siren.omega0") == 9
 
 
-@pytest.mark.skipif(not REAL_LINE.is_file(), reason="../shared/realdata/scotsman-iver2.xtf absent")
+@pytest.mark.skipif(
+    not REAL_LINE.is_file(), reason=f"{REAL_LINE} absent (set SSS2BATHY_REALDATA=FOLDER)"
+)
 def test_the_real_iver2_line():
     s = scale_of_xtf_files(
         {"files": str(REAL_LINE), "n_bins": 512, "tilt_deg": 20.0, "beam_width_deg": 50.0}

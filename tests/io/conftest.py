@@ -12,8 +12,8 @@ from pyxtf import XTFFileHeader, XTFPingHeader
 
 from sss2bathy.geometry import attitude_to_rotation
 from sss2bathy.survey import SensorParams, SidescanLine
+from tests.conftest import REALDATA  # the shared real files, or $SSS2BATHY_REALDATA
 
-REALDATA = Path(__file__).resolve().parents[2].parent / "shared" / "realdata"
 ORIGIN = {"crs": "EPSG:32633", "easting": 500000.0, "northing": 6500000.0}
 
 
