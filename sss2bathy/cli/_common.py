@@ -143,6 +143,30 @@ def rename_keys(message: str, aliases: Mapping[str, str] | None) -> str:
     return message
 
 
+class RenameKeys(logging.Filter):
+    """A log handler filter spelling config keys as the entry point does
+    (:func:`rename_keys`), so warnings name the keys a user of that command types."""
+
+    def __init__(self, aliases: Mapping[str, str]) -> None:
+        super().__init__()
+        self.aliases = dict(aliases)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        renamed = rename_keys(message, self.aliases)
+        if renamed != message:
+            record.msg, record.args = renamed, None
+        return True
+
+
+def _rename_keys_in_logs(aliases: Mapping[str, str] | None) -> None:
+    if not aliases:
+        return
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, RenameKeys) for f in handler.filters):
+            handler.addFilter(RenameKeys(aliases))
+
+
 def _human_bytes(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if n < 1024 or unit == "TiB":
@@ -283,6 +307,7 @@ def user_errors(
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        _rename_keys_in_logs(aliases)
         try:
             return fn(*args, **kwargs)
         except user_error_types() as err:

@@ -16,6 +16,7 @@ from omegaconf import OmegaConf
 
 from sss2bathy.cli._common import (
     USER_ERROR_EXIT,
+    RenameKeys,
     check_crs_keys,
     log_config,
     os_error_message,
@@ -249,3 +250,18 @@ def test_config_goes_to_the_run_folder_not_the_console(tmp_path, caplog):
     messages = [r.getMessage() for r in caplog.records if r.levelname == "INFO"]
     assert messages == [f"config: {path}"]
     assert log_config(OmegaConf.create({"extras": {"print_config": False}}), tmp_path) is None
+
+
+def test_log_messages_spell_keys_as_the_entry_point_does(caplog):
+    import logging
+
+    logger = logging.getLogger("sss2bathy.test_rename")
+    rename = RenameKeys({"data.survey.": "survey."})
+    caplog.handler.addFilter(rename)
+    try:
+        with caplog.at_level(logging.WARNING):
+            logger.warning("resampled to %d bins (data.survey.n_bins)", 512)
+            logger.warning("paths.data.survey.x stays")
+    finally:
+        caplog.handler.removeFilter(rename)
+    assert caplog.messages == ["resampled to 512 bins (survey.n_bins)", "paths.data.survey.x stays"]
