@@ -13,6 +13,12 @@ Issue 16's targets, measured on generated AUV-like XTF surveys:
    along-track interpolation of the kept altimeter points, their ratio, the lines' overlap
    (:func:`swath_overlap`, from the imported lines) and the altitude repairs against the
    truth (:func:`repair_errors`); :func:`to_markdown` / :func:`to_csv` write the table.
+4. ``--verdict-folds K`` (:func:`run_verdict_study`): does ``sss2bathy-map``'s K-fold verdict
+   (:mod:`sss2bathy.eval.verdict`) agree with the MBES? Per seed the sidescan method with
+   ``verdict.folds=K`` (the verdict and its final map) and a heights-only map, both scored
+   against the simulated MBES grid on the same cells (:func:`score_maps_on_truth`); the
+   verdict's sidescan-vs-heights-only call against the MBES's (:func:`verdict_agreement`),
+   in ``verdict_study.md`` / ``.csv``.
 
 Seed ``s`` is the survey's simulation seed *and* the fit's seed (its held-out blocks and
 SIREN initialisation), so every seed is a new survey. Choose settings on a seed that the
@@ -23,6 +29,7 @@ held-out MAE is optimistic; the table marks them.
     python -m sss2bathy.eval.xtf_study --seeds 1 2 3 --out outputs/xtf_study
     python -m sss2bathy.eval.xtf_study --cnn-checkpoint outputs/runs/cnn/<run>/checkpoints/last.ckpt
     make xtf-study [CKPT=...] [ARGS=...]
+    python -m sss2bathy.eval.xtf_study --verdict-folds 5 --scale tiny --seeds 1 2 3
 """
 
 from __future__ import annotations
@@ -51,6 +58,7 @@ from sss2bathy.io.xtf import write_xtf
 from sss2bathy.metrics.bathy import MAP_TAGS
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.generate import generate_survey
+from sss2bathy.survey.grid import BathyGrid
 from sss2bathy.survey.model import (
     ALTITUDE_DETECTED,
     ALTITUDE_INTERPOLATED,
@@ -343,6 +351,208 @@ def write_table(rows: Sequence[Mapping[str, Any]], out_dir: str | Path) -> dict[
     return paths
 
 
+# ---------------------------------------------------------------- verdict against the MBES
+
+VERDICT_COLUMNS = (
+    "seed",
+    "vs_heights",
+    "diff_heights_m",
+    "half_heights_m",
+    "vs_interp",
+    "diff_interp_m",
+    "half_interp_m",
+    "outcome",
+    "map_mae_sidescan",
+    "map_mae_heights",
+    "truth",
+    "agrees",
+    "region_mae_sidescan",
+    "region_mae_heights",
+    "bias_sidescan",
+    "bias_heights",
+    "n_cells",
+    "folds",
+    "block_m",
+    "wall_s",
+    "run",
+)
+
+
+def verdict_call(verdict: Mapping[str, Any], baseline: str) -> dict[str, Any]:
+    """The subject-against-``baseline`` comparison of a ``verdict.json``
+    (:meth:`sss2bathy.eval.verdict.KFoldVerdict.to_dict`): ``call`` = ``"better"`` (the
+    subject wins), ``"worse"`` (the baseline wins) or ``"inconclusive"``, ``diff`` = mean
+    of ``MAE_subject - MAE_baseline`` (m) and ``half`` = its 95 % half-width (m).
+
+    Raises:
+        ValueError: no comparison with ``baseline`` in the verdict.
+    """
+    subject = verdict.get("subject")
+    for c in verdict.get("comparisons") or []:
+        if c.get("a") == subject and c.get("b") == baseline:
+            winner = c.get("winner")
+            call = "inconclusive" if winner is None else "better" if winner == subject else "worse"
+            return {
+                "call": call,
+                "diff": float(c.get("mean_diff", math.nan)),
+                "half": float(c.get("half_width_95", math.nan)),
+            }
+    found = [c.get("b") for c in verdict.get("comparisons") or []]
+    raise ValueError(
+        f"verdict: expected a comparison of {subject!r} with {baseline!r}, found {found}"
+    )
+
+
+def truth_call(mae_sidescan: float, mae_heights: float) -> str:
+    """The MBES's answer: ``"better"`` when the sidescan map's MAE is the lower, ``"worse"``
+    when it is not, ``"unknown"`` when either is not finite."""
+    if not (math.isfinite(mae_sidescan) and math.isfinite(mae_heights)):
+        return "unknown"
+    return "better" if mae_sidescan < mae_heights else "worse"
+
+
+def verdict_agreement(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """How often the verdict's sidescan-vs-heights-only call (``vs_heights``) matches the
+    MBES's (``truth``): ``conclusive`` = rows with a better/worse call and a known truth,
+    ``agree`` = those whose call is the truth's, ``inconclusive`` and ``n`` = all rows."""
+    conclusive = [
+        r
+        for r in rows
+        if r.get("vs_heights") in ("better", "worse") and r.get("truth") in ("better", "worse")
+    ]
+    return {
+        "n": len(rows),
+        "conclusive": len(conclusive),
+        "agree": sum(r["vs_heights"] == r["truth"] for r in conclusive),
+        "inconclusive": sum(r.get("vs_heights") == "inconclusive" for r in rows),
+    }
+
+
+def verdict_row(
+    seed: int,
+    verdict: Mapping[str, Any],
+    scores: Mapping[str, Mapping[str, float]],
+    run: str = "",
+    wall_s: float = math.nan,
+) -> dict[str, Any]:
+    """One row of the verdict study: the verdict's calls (``verdict.json``) and the two final
+    maps' scores against the MBES (``scores``: ``{"sidescan"|"heights": {"mae",
+    "region_mae", "bias", "n_cells"}}``, :func:`score_maps_on_truth`)."""
+    vh = verdict_call(verdict, "siren_heights_only")
+    vi = verdict_call(verdict, "interpolation")
+    side, heights = scores["sidescan"], scores["heights"]
+    truth = truth_call(float(side["mae"]), float(heights["mae"]))
+    conclusive = vh["call"] != "inconclusive" and truth != "unknown"
+    return {
+        "seed": int(seed),
+        "vs_heights": vh["call"],
+        "diff_heights_m": vh["diff"],
+        "half_heights_m": vh["half"],
+        "vs_interp": vi["call"],
+        "diff_interp_m": vi["diff"],
+        "half_interp_m": vi["half"],
+        "outcome": str(verdict.get("outcome")),
+        "map_mae_sidescan": float(side["mae"]),
+        "map_mae_heights": float(heights["mae"]),
+        "truth": truth,
+        "agrees": (vh["call"] == truth) if conclusive else None,
+        "region_mae_sidescan": float(side.get("region_mae", math.nan)),
+        "region_mae_heights": float(heights.get("region_mae", math.nan)),
+        "bias_sidescan": float(side.get("bias", math.nan)),
+        "bias_heights": float(heights.get("bias", math.nan)),
+        "n_cells": int(side.get("n_cells", 0)),
+        "folds": int(verdict.get("folds") or 0),
+        "block_m": float(verdict.get("block_m") or math.nan),
+        "wall_s": float(wall_s),
+        "run": run,
+    }
+
+
+def verdict_to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "Verdict study") -> str:
+    """Markdown of the verdict study rows and the agreement count."""
+    agree = verdict_agreement(rows)
+    folds = sorted({int(r["folds"]) for r in rows}) or [0]
+    md = [
+        f"# {title}",
+        "",
+        "Generated overlapping AUV-like XTF surveys (synthetic_d1, one per seed, no MBES "
+        "given to the fit). `sss2bathy-map method=siren_lambert verdict.folds="
+        f"{'/'.join(map(str, folds))}` gives the K-fold verdict and the sidescan map; "
+        "`method=siren_heights_only verdict.folds=0` the heights-only map. verdict = the "
+        "sidescan fit against heights-only / interpolation on held-out altimeter blocks: "
+        "better, worse or inconclusive; diff = mean paired MAE difference (sidescan - "
+        "baseline, m) +- its 95 % half-width. MBES MAE (m) = each final map against the "
+        "simulated MBES grid on the same cells (the sidescan map's written cells); truth = "
+        "better when the sidescan map's MBES MAE is the lower. agrees: the verdict's call "
+        "against heights-only matches the truth (blank when inconclusive).",
+        "",
+        "| seed | vs heights-only | diff (m) | vs interpolation | diff (m) | outcome "
+        "| MBES MAE sidescan | MBES MAE heights-only | truth | agrees |",
+        "|---:|---|---:|---|---:|---|---:|---:|---|---|",
+    ]
+    for r in rows:
+        agrees = {True: "yes", False: "NO", None: ""}[r["agrees"]]
+        md.append(
+            f"| {r['seed']} | {r['vs_heights']} "
+            f"| {_f(r['diff_heights_m'], '+.3f')} +- {_f(r['half_heights_m'])} "
+            f"| {r['vs_interp']} | {_f(r['diff_interp_m'], '+.3f')} +- {_f(r['half_interp_m'])} "
+            f"| {r['outcome']} | {_f(r['map_mae_sidescan'])} | {_f(r['map_mae_heights'])} "
+            f"| {r['truth']} | {agrees} |"
+        )
+    md += [
+        "",
+        f"Agreement: {agree['agree']} of {agree['conclusive']} conclusive cases agree with the "
+        f"MBES ({agree['inconclusive']} of {agree['n']} inconclusive).",
+    ]
+    return "\n".join(md) + "\n"
+
+
+def verdict_to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
+    """CSV of the verdict study rows (:data:`VERDICT_COLUMNS`)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(VERDICT_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({c: r.get(c) for c in VERDICT_COLUMNS})
+    return buf.getvalue()
+
+
+def map_on_grid(
+    heights: np.ndarray,
+    x0: float,
+    y0: float,
+    cell_m: float,
+    like: BathyGrid,
+    shift_xy: Sequence[float] = (0.0, 0.0),
+) -> BathyGrid:
+    """A map grid (``heights``, SW cell centre ``x0, y0``, ``cell_m``) bilinearly sampled at
+    the cell centres of ``like``, whose frame is the map's shifted by ``shift_xy`` (m: a
+    point ``p`` of ``like`` is ``p + shift_xy`` in the map's frame); NaN outside the map."""
+    src = BathyGrid(np.asarray(heights, np.float32), x0, y0, cell_m)
+    xx, yy = np.meshgrid(like.x + float(shift_xy[0]), like.y + float(shift_xy[1]))
+    return BathyGrid(src.sample(xx, yy), like.x0, like.y0, like.cell_size, like.crs)
+
+
+def mask_on_grid(
+    mask: np.ndarray,
+    x0: float,
+    y0: float,
+    cell_m: float,
+    like: BathyGrid,
+    shift_xy: Sequence[float] = (0.0, 0.0),
+) -> np.ndarray:
+    """``(ny, nx)`` bool of ``like``: the value of the map-grid ``mask`` cell that holds each
+    of ``like``'s cell centres (nearest cell; False outside the map)."""
+    m = np.asarray(mask, bool)
+    xx, yy = np.meshgrid(like.x + float(shift_xy[0]), like.y + float(shift_xy[1]))
+    ix = np.floor((xx - x0) / cell_m + 0.5).astype(np.int64)
+    iy = np.floor((yy - y0) / cell_m + 0.5).astype(np.int64)
+    ok = (ix >= 0) & (ix < m.shape[1]) & (iy >= 0) & (iy < m.shape[0])
+    out = np.zeros(like.shape, bool)
+    out[ok] = m[iy[ok], ix[ok]]
+    return out
+
+
 # ---------------------------------------------------------------- survey and runs
 
 
@@ -379,14 +589,17 @@ def make_survey(
     lines to ``out_dir/line_*.xtf``, with ``dropout_runs`` runs of
     ``dropout_pings_per_run`` pings per line whose altitude is removed (alternately 0 m
     and NaN, both written as XTF's "no altitude" 0). ``out_dir/truth.npz`` holds every
-    line's true altitude and dropped pings. Reused when ``truth.npz`` exists."""
+    line's true altitude and dropped pings and the MBES grid (:func:`truth_grid`). Reused
+    when ``truth.npz`` exists with the MBES grid."""
     out = Path(out_dir)
     name = f"xtf_study_{scale}_s{int(seed)}"
     cfg = survey_config("synthetic_d1", scale)
     crs = str(cfg["origin"]["crs"])
     survey_ = StudySurvey(out, name, crs)
     if survey_.truth_path.is_file():
-        return survey_
+        with np.load(survey_.truth_path, allow_pickle=False) as old:
+            if "mbes/heights" in old:
+                return survey_
     cfg["name"] = name
     cfg["seed"] = int(seed)
     cfg["plan"]["mount"] = "auv"
@@ -397,6 +610,17 @@ def make_survey(
         raise ValueError(f"split: expected lines in {split!r}, found none ({survey.splits})")
     out.mkdir(parents=True, exist_ok=True)
     truth: dict[str, np.ndarray] = {}
+    if survey.grid is not None:
+        truth["mbes/heights"] = np.asarray(survey.grid.heights, np.float32)
+        truth["mbes/geometry"] = np.array(
+            [
+                survey.grid.x0,
+                survey.grid.y0,
+                survey.grid.cell_size,
+                float(survey.origin.get("easting") or 0.0),
+                float(survey.origin.get("northing") or 0.0),
+            ]
+        )
     for i, line in enumerate(lines):
         drop = dropout_pings(
             line.n_pings, dropout_runs, dropout_pings_per_run, seed=int(seed) * 1000 + i
@@ -425,10 +649,12 @@ def map_command(
     cnn_checkpoint: str | None = None,
     extra: Sequence[str] = (),
     map_args: Sequence[str] = (),
+    verdict_folds: int = 0,
 ) -> list[str]:
     """The ``sss2bathy-map`` command line of one study run (1 thread, no logger):
     ``extra`` = further ``sss2bathy-train`` overrides, ``map_args`` = further
-    ``sss2bathy-map`` arguments (e.g. ``holdout.block_pings=20``)."""
+    ``sss2bathy-map`` arguments (e.g. ``holdout.block_pings=20``), ``verdict_folds`` = its
+    ``verdict.folds`` (0: one held-out draw per run, the study's seeds are its repeats)."""
     if variant not in VARIANTS:
         raise ValueError(f"variant: expected one of {sorted(VARIANTS)}, found {variant!r}")
     overrides = ["callbacks=none", "trainer.enable_progress_bar=false"]
@@ -449,7 +675,7 @@ def map_command(
         f"paths.data_dir={data_dir}",
         f"paths.output_dir={run_dir.parent}",
         f"hydra.run.dir={run_dir}",
-        "verdict.folds=0",  # one held-out draw per run: the study's seeds are its repeats
+        f"verdict.folds={int(verdict_folds)}",
         *VARIANTS[variant],
         *map_args,
         "overrides=[" + ",".join(f"'{o}'" for o in overrides) + "]",
@@ -633,10 +859,141 @@ def run_study(
     return rows
 
 
+def truth_grid(survey: StudySurvey) -> tuple[BathyGrid, tuple[float, float]]:
+    """The simulated MBES grid of a :func:`make_survey` survey (its local frame) and that
+    frame's origin (easting, northing).
+
+    Raises:
+        ValueError: ``truth.npz`` without the grid (written before it held one).
+    """
+    with np.load(survey.truth_path, allow_pickle=False) as truth:
+        if "mbes/heights" not in truth:
+            raise ValueError(
+                f"{survey.truth_path}: expected the MBES grid (mbes/heights), found none; "
+                "delete the folder to regenerate the survey"
+            )
+        x0, y0, cell, easting, northing = (float(v) for v in truth["mbes/geometry"])
+        grid = BathyGrid(truth["mbes/heights"], x0, y0, cell, survey.crs)
+    return grid, (easting, northing)
+
+
+def score_maps_on_truth(
+    survey: StudySurvey, data_dir: Path, run_dirs: Mapping[str, Path], cells_from: str
+) -> dict[str, dict[str, float]]:
+    """Each run's final map (``map.npz``) against the MBES grid (:func:`truth_grid`), on the
+    same cells for every run: the MBES cells inside the written map (``coverage``) of
+    ``run_dirs[cells_from]`` (``mae``, ``std``, ``grad_cs``, ``n_cells``,
+    :func:`sss2bathy.eval.maps.map_metrics`, and ``bias`` = the mean signed error) and
+    inside its scored track region (``region_mae``). The maps are in the imported survey's
+    frame; the shift between the two origins is applied."""
+    from sss2bathy.eval.maps import map_metrics
+
+    true, (easting, northing) = truth_grid(survey)
+    imported = Survey.load(Path(data_dir) / survey.name)
+    shift = (
+        easting - float(imported.origin.get("easting") or 0.0),
+        northing - float(imported.origin.get("northing") or 0.0),
+    )
+
+    def load(run_dir: Path) -> dict[str, Any]:
+        path = Path(run_dir) / "map.npz"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: expected a finished run's map, found none")
+        with np.load(path, allow_pickle=False) as d:
+            return {k: d[k] for k in d.files}
+
+    maps = {name: load(run_dir) for name, run_dir in run_dirs.items()}
+    ref = maps[cells_from]
+    geom = (float(ref["x0"]), float(ref["y0"]), float(ref["cell_size"]))
+    written = mask_on_grid(ref["coverage"], *geom, true, shift)
+    region = mask_on_grid(ref["region"], *geom, true, shift)
+    preds = {
+        name: map_on_grid(
+            d["heights"], float(d["x0"]), float(d["y0"]), float(d["cell_size"]), true, shift
+        )
+        for name, d in maps.items()
+    }
+    # the same cells for every map: finite in all of them
+    finite = np.logical_and.reduce([np.isfinite(p.heights) for p in preds.values()])
+    out = {}
+    for name, pred in preds.items():
+        scored = map_metrics(pred, true, written & finite)
+        err = (pred.heights - true.heights)[written & finite & np.isfinite(true.heights)]
+        scored["bias"] = float(err.mean()) if err.size else math.nan
+        scored["region_mae"] = map_metrics(pred, true, region & finite)["mae"]
+        out[name] = scored
+    return out
+
+
+def run_verdict_study(
+    out_dir: str | Path,
+    seeds: Sequence[int],
+    scale: str = "tiny",
+    folds: int = 5,
+    method: str = "siren_lambert",
+    extra: Sequence[str] = (),
+    map_args: Sequence[str] = (),
+    rerun: bool = False,
+) -> list[dict[str, Any]]:
+    """Does the K-fold verdict agree with the MBES? Per seed, one generated survey
+    (:func:`make_survey`), ``method`` with ``verdict.folds=folds`` (the verdict and the
+    sidescan map) and ``siren_heights_only`` with ``verdict.folds=0 holdout.fraction=0`` (the
+    heights-only map on every altimeter point, like the verdict run's final map), one
+    process at a time;
+    both maps scored against the MBES (:func:`score_maps_on_truth`). Writes
+    ``verdict_study.md`` / ``.csv`` under ``out_dir`` after every seed; finished runs are
+    reused unless ``rerun``."""
+    if int(folds) < 2:
+        raise ValueError(f"--verdict-folds: expected 2 or more folds, found {folds}")
+    out = Path(out_dir).resolve()
+    data_dir = out / "data"
+    rows: list[dict[str, Any]] = []
+    for seed in seeds:
+        survey = make_survey(out / "xtf" / f"s{int(seed)}", int(seed), scale=scale)
+        runs = {
+            # the verdict run's final map is fitted on every altimeter point (cli.map)
+            "sidescan": (method, int(folds), ()),
+            "heights": ("siren_heights_only", 0, ("holdout.fraction=0",)),
+        }
+        run_dirs: dict[str, Path] = {}
+        walls: dict[str, float] = {}
+        for key, (m, k, args) in runs.items():
+            run_dir = out / "runs" / f"s{int(seed)}" / f"{m}_folds{k}"
+            run_dirs[key] = run_dir
+            done = (run_dir / "metrics.json").is_file() and (
+                k < 2 or (run_dir / "verdict.json").is_file()
+            )
+            if rerun or not done:
+                cmd = map_command(
+                    survey, m, "demo", seed, run_dir, data_dir, scale,
+                    extra=extra, map_args=[*args, *map_args], verdict_folds=k,
+                )  # fmt: skip
+                log.info("seed %s %s folds=%d: %s", seed, m, k, " ".join(cmd))
+                run_map(cmd, run_dir)
+            wall_path = run_dir / "study_wall_s.txt"
+            walls[key] = float(wall_path.read_text()) if wall_path.is_file() else math.nan
+        verdict = json.loads((run_dirs["sidescan"] / "verdict.json").read_text())
+        scores = score_maps_on_truth(survey, data_dir, run_dirs, cells_from="sidescan")
+        row = verdict_row(
+            seed, verdict, scores, str(run_dirs["sidescan"]), walls["sidescan"] + walls["heights"]
+        )
+        log.info("%s", row)
+        rows.append(row)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "verdict_study.md", verdict_to_markdown(rows))
+        atomic_write_text(out / "verdict_study.csv", verdict_to_csv(rows))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m sss2bathy.eval.xtf_study [--seeds ...] [--cnn-checkpoint PATH] ...``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", default="outputs/xtf_study", help="study folder (runs, table)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="study folder (runs, table); default outputs/xtf_study, with --verdict-folds "
+        "outputs/verdict_study",
+    )
     p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     p.add_argument("--scale", default="demo", help="survey and SIREN scale (tiny | demo)")
     p.add_argument("--methods", nargs="+", default=["siren_lambert", "siren_heights_only"])
@@ -650,8 +1007,29 @@ def main(argv: list[str] | None = None) -> int:
         "--map-args", nargs="*", default=[], help="further sss2bathy-map arguments, every run"
     )
     p.add_argument("--rerun", action="store_true", help="refit runs that already finished")
+    p.add_argument(
+        "--verdict-folds",
+        type=int,
+        default=0,
+        help="K >= 2: the verdict study instead (run_verdict_study: the first --methods "
+        "with verdict.folds=K against a heights-only map, both scored on the MBES)",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.verdict_folds:
+        out = args.out or "outputs/verdict_study"
+        try:
+            vrows = run_verdict_study(
+                out, args.seeds, args.scale, args.verdict_folds, args.methods[0],
+                extra=args.extra, map_args=args.map_args, rerun=args.rerun,
+            )  # fmt: skip
+        except (RuntimeError, ValueError, FileNotFoundError) as exc:
+            print(f"xtf_study: {exc}", file=sys.stderr)
+            return 1
+        print(verdict_to_markdown(vrows))
+        print(f"written: {Path(out) / 'verdict_study.md'}, {Path(out) / 'verdict_study.csv'}")
+        return 0
+    args.out = args.out or "outputs/xtf_study"
     for v in [*args.variants, *(args.cnn_variants or [])]:
         if v not in VARIANTS:
             print(f"--variants: expected some of {sorted(VARIANTS)}, found {v!r}", file=sys.stderr)
