@@ -127,7 +127,7 @@ schedule-study: install ## SIREN-CNN-N2d: paper schedule vs fast schedule, map M
 	$(STUDY_TRAIN) siren_schedule=fast scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/fast $(ARGS)
 	$(STUDY_TRAIN) scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/scale_default $(ARGS)
 	$(STUDY_TRAIN) siren_schedule=paper scale.siren.eval_every_n_epochs=25 hydra.run.dir=$(STUDY)/paper $(ARGS)
-	$(BIN)/python -m sss2bathy.eval.schedule_study --reference paper --reference-epochs 1500 \
+	$(BIN)/python -m studies.schedule_study --reference paper --reference-epochs 1500 \
 		--run paper=$(STUDY)/paper --run fast=$(STUDY)/fast --run $(SCALE)=$(STUDY)/scale_default --out $(STUDY)
 
 .PHONY: lambert-tune
@@ -141,7 +141,7 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 	$(TUNE_TRAIN) model.sensor.near_range_cut_m=16 hydra.sweep.dir=$(TUNE)/near_range_cut $(ARGS)
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_lr=1e-2 hydra.sweep.dir=$(TUNE)/field_lr $(ARGS)
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_weight=0,0.1 hydra.sweep.dir=$(TUNE)/field_weight $(ARGS)
-	$(BIN)/python -m sss2bathy.eval.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
+	$(BIN)/python -m studies.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
 .PHONY: valsite-study
 VALSITE := outputs/valsite_study/$(SCALE)
@@ -158,18 +158,18 @@ valsite-study: install ## SIREN settings on the validation site (d1's recipe, se
 	$(VALSITE_TRAIN) experiment=siren_cnn_n2d model.line_offset=true hydra.run.dir=$(VALSITE)/cnn_n2d_line_offset $(ARGS)
 	$(VALSITE_TRAIN) experiment=siren_cnn_n2d model.line_offset=true $(VALSITE_OLD_LR) \
 		hydra.run.dir=$(VALSITE)/cnn_n2d_line_offset_lr3e-3 $(ARGS)
-	$(BIN)/python -m sss2bathy.eval.valsite_study $(VALSITE)
+	$(BIN)/python -m studies.valsite_study $(VALSITE)
 
 LC_N_TRAIN ?= 8,16,32
 .PHONY: learning-curve
 learning-curve: install ## CNN test MAE vs training lines / time, one survey, fixed test lines -> outputs/learning_curve/
-	$(BIN)/python -m sss2bathy.eval.learning_curve --n-train $(LC_N_TRAIN) --scale $(SCALE) \
+	$(BIN)/python -m studies.learning_curve --n-train $(LC_N_TRAIN) --scale $(SCALE) \
 		--torch-threads $${TORCH_THREADS:-1} --out outputs/learning_curve $(ARGS)
 
 .PHONY: real1m-figure real1m
 real1m-figure: install ## The synthetic_real_1m survey (real 1 m MBES grid as terrain) + hillshade/waterfall figure -> outputs/figures/synthetic_real_1m.png
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_real_1m scale=$(SCALE) $(ARGS)
-	$(BIN)/python -m sss2bathy.sim.real_figure data/synthetic_real_1m_$(SCALE) outputs/figures/synthetic_real_1m.png
+	$(BIN)/python -m studies.real_figure data/synthetic_real_1m_$(SCALE) outputs/figures/synthetic_real_1m.png
 
 real1m: install ## The real 1 m grid survey: SIREN GT-N2d, CNN-N2d, Lambert, heights-only, one fit at a time (CNN-N2d needs a CNN run)
 	for e in gt_n2d cnn_n2d lambert heights_only; do \
@@ -179,7 +179,7 @@ real1m: install ## The real 1 m grid survey: SIREN GT-N2d, CNN-N2d, Lambert, hei
 .PHONY: paper-cpu-study
 BUDGET ?= 20
 paper-cpu-study: install ## Paper-scale d1 on a CPU: prepared once, SIREN-GT-N2d and Lambert at the paper and budget schedules, BUDGET min each -> outputs/paper_cpu_study/
-	$(BIN)/python -m sss2bathy.eval.paper_cpu_study --scale paper --budget-min $(BUDGET) $(ARGS)
+	$(BIN)/python -m studies.paper_cpu_study --scale paper --budget-min $(BUDGET) $(ARGS)
 
 tb: install ## TensorBoard on outputs/
 	$(BIN)/tensorboard --logdir outputs/ --bind_all

@@ -1,6 +1,6 @@
 """A map run of a real line beside its sidescan mosaic: does the map show what the sidescan sees?
 
-    .venv/bin/python studies/real_line_figure.py RUN_DIR SURVEY_DIR OUT.png [--title TEXT]
+    .venv/bin/python -m studies.real_line_figure RUN_DIR SURVEY_DIR OUT.png [--title TEXT]
         [--before RUN_DIR --before-label TEXT]
 
 ``RUN_DIR``: an ``sss2bathy-map`` run folder (its ``map.npz``); ``SURVEY_DIR``: the imported

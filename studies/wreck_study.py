@@ -1,8 +1,8 @@
 """Do the SIREN maps show wrecks? Fits on a synthetic survey with objects, scored per object.
 
-    .venv/bin/python studies/wreck_study.py                       (demo scale, both settings)
-    .venv/bin/python studies/wreck_study.py --scale tiny --methods siren_lambert
-    .venv/bin/python studies/wreck_study.py --variant w30=model.siren.omega0=30
+    .venv/bin/python -m studies.wreck_study                       (demo scale, both settings)
+    .venv/bin/python -m studies.wreck_study --scale tiny --methods siren_lambert
+    .venv/bin/python -m studies.wreck_study --variant w30=model.siren.omega0=30
 
 Generates ``data/survey=synthetic_wrecks`` (five hulls and boxes 1-4 m high beside the
 tracks of an AUV sidescan, ``conf/data/survey/synthetic_wrecks.yaml``), fits each method with
@@ -20,7 +20,6 @@ is the upper bound of SIREN-CNN-N2d here.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import subprocess
@@ -28,6 +27,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from studies.tables import markdown_table, to_csv, write_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -135,11 +136,6 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(row)
             print(row, flush=True)
 
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "wreck_study.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     heights = ", ".join(f"{o.kind} {o.height_m:g} m" for o in objects)
     lines = [
         f"# Wreck study: {args.survey} at scale={args.scale}",
@@ -148,21 +144,22 @@ def main(argv: list[str] | None = None) -> None:
         "median 2-6 m around it; visible = fitted >= 50 % of true. SIREN-GT-N2d (true "
         "normals) stands in for SIREN-CNN-N2d (no CNN checkpoint).",
         "",
-        f"Command: `.venv/bin/python studies/wreck_study.py {' '.join(argv or sys.argv[1:])}`",
+        f"Command: `.venv/bin/python -m studies.wreck_study {' '.join(argv or sys.argv[1:])}`",
         "",
-        "| method | settings | map MAE (m) | held-out alt. MAE (m) | object height MAE (m) "
-        "| visible | fitted heights (m) | true heights (m) |",
-        "|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
-        label = r["settings"] + (f" (`{r['overrides']}`)" if r["overrides"] else "")
-        lines.append(
-            f"| {r['method']} | {label} | {r['map_mae_m']:.3f} | {r['holdout_alt_mae_m']:.3f} | "
-            f"{r['object_height_mae_m']:.2f} | {r['visible_fraction']:.0%} | {r['fitted_m']} | "
-            f"{r['true_m']} |"
-        )
-    (out / "wreck_study.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {out / 'wreck_study.md'}")
+    lines += markdown_table(
+        ["method", "settings", "map MAE (m)", "held-out alt. MAE (m)", "object height MAE (m)"]
+        + ["visible", "fitted heights (m)", "true heights (m)"],
+        (
+            [r["method"], r["settings"] + (f" (`{r['overrides']}`)" if r["overrides"] else "")]
+            + [f"{r['map_mae_m']:.3f}", f"{r['holdout_alt_mae_m']:.3f}"]
+            + [f"{r['object_height_mae_m']:.2f}", f"{r['visible_fraction']:.0%}"]
+            + [r["fitted_m"], r["true_m"]]
+            for r in rows
+        ),
+    )
+    paths = write_tables(out, "wreck_study", "\n".join(lines) + "\n", to_csv(rows, list(rows[0])))
+    print(f"wrote {paths['md']}")
     if any(math.isnan(r["object_height_mae_m"]) for r in rows):
         print("note: some objects lie outside a map's coverage (NaN)", file=sys.stderr)
 

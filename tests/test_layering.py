@@ -12,7 +12,10 @@ the package graph. The rules:
    layers; packages of one layer do not import each other);
 3. no module imports a ``_private`` name or module of another package (public seams only);
 4. inside a package, the modules' import graph has no cycle either (an import inside a
-   function hides a cycle; it does not remove it).
+   function hides a cycle; it does not remove it);
+5. the top-level ``studies/`` and ``benchmarks/`` sit above everything: they import the
+   library's public names only, no ``sss2bathy`` module imports them, and the package build
+   (``[tool.setuptools.packages.find]`` of pyproject.toml) leaves them out.
 
 :data:`KNOWN_VIOLATIONS` names the violations that are being fixed; each must still exist,
 so the list can only shrink. :data:`LAYERS` must match the layer block of
@@ -32,6 +35,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "sss2bathy"
 DOC = ROOT / "docs" / "architecture.md"
+#: Top-level folders of scripts on the library's public API, outside the package.
+OUTSIDE = ("studies", "benchmarks")
 
 #: Bottom to top; ``sss2bathy`` is the root ``__init__`` (the version string only).
 LAYERS: tuple[tuple[str, ...], ...] = (
@@ -222,6 +227,17 @@ def _show(imps: list[Import]) -> str:
     return ", ".join(f"{i.file}:{i.line}" for i in imps)
 
 
+def outside_imports(path: Path, module: str) -> list[tuple[int, str]]:
+    """``(line, module)`` of every import of a module of :data:`OUTSIDE` in one file."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    return [
+        (node.lineno, name)
+        for node in ast.walk(tree)
+        for name in _imported(node, module, path.name == "__init__.py")
+        if name.split(".")[0] in OUTSIDE
+    ]
+
+
 # ------------------------------------------------------------------------------ tests
 @pytest.fixture(scope="module")
 def imports() -> list[Import]:
@@ -287,7 +303,48 @@ def test_layers_match_the_design_doc():
     )
 
 
-def test_the_checks_catch_what_they_should():
+def test_the_library_never_imports_studies_or_benchmarks():
+    found = [
+        f"{path.relative_to(ROOT)}:{line} imports {name}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for line, name in outside_imports(path, _module_name(path))
+    ]
+    assert not found, f"sss2bathy: expected no import of {OUTSIDE}, found:\n" + "\n".join(found)
+
+
+def test_studies_and_benchmarks_use_public_names_only():
+    found = []
+    for folder in OUTSIDE:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                for name in _imported(node, module, path.name == "__init__.py"):
+                    parts = name.split(".")
+                    if parts[0] == "sss2bathy" and any(
+                        p.startswith("_") and not p.startswith("__") for p in parts[1:]
+                    ):
+                        found.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {name}")
+    assert not found, "expected the library's public names only, found:\n" + "\n".join(found)
+
+
+def test_studies_and_benchmarks_are_not_packaged():
+    from setuptools import find_packages
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    find = find["packages"]["find"]
+    packaged = find_packages(str(ROOT), include=find.get("include", ["*"]))
+    assert "sss2bathy" in packaged, f"pyproject.toml: expected sss2bathy packaged, found {packaged}"
+    inside = sorted(p for p in packaged if p.split(".")[0] in OUTSIDE)
+    assert not inside, f"pyproject.toml packages.find: expected {OUTSIDE} left out, found {inside}"
+    assert not any((PACKAGE / name).exists() for name in OUTSIDE), (
+        "a study folder inside sss2bathy/"
+    )
+
+
+def test_the_checks_catch_what_they_should(tmp_path):
     """The graph helpers on a hand-made graph: a cycle is found, an upward and a private
     import are reported, downward edges pass."""
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
@@ -304,3 +361,9 @@ def test_the_checks_catch_what_they_should():
     rel = [n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert _imported(rel[0], "sss2bathy.modules.siren", False) == ["sss2bathy.eval.maps"]
     assert _imported(rel[1], "sss2bathy.data", True) == ["sss2bathy.data.sibling"]
+    script = tmp_path / "probe.py"
+    script.write_text("def f():\n    from studies.tables import to_csv\n    import benchmarks\n")
+    assert outside_imports(script, "sss2bathy.eval.probe") == [
+        (2, "studies.tables.to_csv"),
+        (3, "benchmarks"),
+    ]

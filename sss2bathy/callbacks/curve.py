@@ -4,7 +4,7 @@ Every evaluation appends one row: epoch, optimizer step, wall seconds since the 
 started, *training* seconds (wall minus the time spent in validation, so runs that
 evaluate at different rates stay comparable), the learning rate and every ``val/*``
 metric of that evaluation. This is what the schedule study
-(:mod:`sss2bathy.eval.schedule_study`) compares: how soon a schedule reaches a map error.
+(``python -m studies.schedule_study``) compares: how soon a schedule reaches a map error.
 
 A module with periodic map evaluations (:class:`~sss2bathy.modules.siren.SirenModule`, every
 ``eval_every_n_epochs`` epochs) exposes the latest as ``latest_evaluation`` (its ``epoch``

@@ -456,7 +456,7 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         n_train_lines: use only this many of the survey's training lines (validation lines
             included), the first of a permutation drawn with ``seed`` (a smaller set is part
             of a larger one); None: all. With the survey generated once for the largest
-            count the test lines stay the same (:mod:`sss2bathy.eval.learning_curve`).
+            count the test lines stay the same (``python -m studies.learning_curve``).
         sonar_mask: the sonar-only mask the intensity is normalised over
             (:class:`~sss2bathy.data.masks.SonarMaskConfig` fields; ``None``: defaults).
         input_channels: the network's input channels (``None``: ``[intensity]``); stored in

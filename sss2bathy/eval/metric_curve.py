@@ -4,7 +4,7 @@ Columns: the base columns :data:`BASE_COLUMNS` (``epoch``, optimizer ``step``, `
 since the fit started, ``train_s`` = wall minus validation time, ``lr``), then every
 ``val/*`` metric of that evaluation. The ``MetricCurve`` callback
 (:mod:`sss2bathy.callbacks.curve`) writes it during a fit; the schedule study
-(:mod:`sss2bathy.eval.schedule_study`) reads it. The format lives in ``eval/`` so that
+(``python -m studies.schedule_study``) reads it. The format lives in ``eval/`` so that
 its reader needs nothing from the training layers.
 """
 

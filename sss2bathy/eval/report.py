@@ -109,7 +109,9 @@ def find_latest_runs(outputs_dir: str | Path) -> dict[str, RunRecord]:
     return {k: v[1] for k, v in latest.items()}
 
 
-def _mbes_grid(run: RunRecord) -> BathyGrid | None:
+def mbes_grid(run: RunRecord) -> BathyGrid | None:
+    """The MBES grid of the run's survey (local frame), or None when the run names no
+    survey folder with a ``survey.yaml``."""
     name, data_dir = run.info.get("survey_name"), run.info.get("data_dir")
     if not name or not data_dir:
         return None
@@ -384,7 +386,7 @@ def _survey_section(
     present = [(task, label) for task, label in variants if task in runs]
     if not present:
         return [f"## {title}", "", "No finished run of these experiments was found.", ""]
-    truth = _mbes_grid(runs[present[0][0]])
+    truth = mbes_grid(runs[present[0][0]])
     if truth is None:
         return [f"## {title}", "", "The MBES grid of these runs was not found.", ""]
     maps = [m for t, lbl in present if (m := load_map_run(lbl, runs[t], truth)) is not None]

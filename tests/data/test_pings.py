@@ -292,11 +292,11 @@ def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels)
 
 
 def test_cnn_probe_scores_the_prediction_siren_cnn_n2d_uses(tiny_survey, tmp_path, capsys):
-    """``eval.cnn_probe``: the MAE and bias of the very prediction SIREN-CNN-N2d gets, against
+    """``studies.cnn_probe``: the MAE and bias of the very prediction SIREN-CNN-N2d gets, against
     the draped truth, beside the constant; one line for a folder that is not a survey."""
-    from sss2bathy.draping import DrapeConfig, drape_survey
     from sss2bathy.data.cnn_normals import predict_normals
-    from sss2bathy.eval.cnn_probe import main, probe_survey
+    from sss2bathy.draping import DrapeConfig, drape_survey
+    from studies.cnn_probe import main, probe_survey
 
     ckpt = _tiny_checkpoint(tmp_path)
     rows = probe_survey(ckpt, tiny_survey, None, constant=0.05, window_cfg=WINDOW)

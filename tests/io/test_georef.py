@@ -220,11 +220,11 @@ def test_survey_without_crs_saves_its_grid_without_one(tmp_path, caplog):
 
 
 def test_report_reads_the_projected_survey_grid_back_local(tmp_path):
-    from sss2bathy.eval.report import RunRecord, _mbes_grid, _origin_note, _panels
+    from sss2bathy.eval.report import RunRecord, _origin_note, _panels, mbes_grid
 
     _survey().save(tmp_path / "data" / "s")
     run = RunRecord(tmp_path, {"survey_name": "s", "data_dir": str(tmp_path / "data")}, {})
-    truth = _mbes_grid(run)
+    truth = mbes_grid(run)
     assert truth.x0 == pytest.approx(-3.25, abs=1e-9) and truth.crs == "EPSG:32633"
     note = _origin_note(run)
     assert "local coordinates" in note and "E 680000.0" in note and "EPSG:32633" in note

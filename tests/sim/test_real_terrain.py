@@ -442,7 +442,7 @@ def _terrain_params(cfg: dict):
 
 
 def test_real_figure_draws_hillshade_and_waterfall(tmp_path):
-    from sss2bathy.sim.real_figure import main, render_real_survey
+    from studies.real_figure import main, render_real_survey
 
     path, _ = _holes_and_spikes_grid(tmp_path)
     cfg = _as_grid_config(_tiny(), path)

@@ -12,15 +12,13 @@ A run that fitted or scored on anything but the training lines (``data.sidescan_
 ``data.altimeter_split`` not ``train``) is refused: the settings must never be chosen on the
 test lines the paper's tables report.
 
-    python -m sss2bathy.eval.lambert_tune outputs/multiruns/lambert_tune/demo \\
+    python -m studies.lambert_tune outputs/multiruns/lambert_tune/demo \\
         --out outputs/lambert_tune/demo
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import logging
 from collections.abc import Callable, Mapping
@@ -29,8 +27,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from sss2bathy.eval.report import RunRecord, _mbes_grid, load_map_run, score_maps
-from sss2bathy.utils.atomic import atomic_write_text
+from sss2bathy.eval.report import RunRecord, load_map_run, mbes_grid, score_maps
+from studies import tables
+from studies.tables import fmt_cell, markdown_table, write_tables
 
 log = logging.getLogger("sss2bathy.lambert_tune")
 
@@ -128,7 +127,7 @@ def score_run_folder(
             check_survey(name)
         except ValueError as err:
             raise ValueError(f"{root}: {err}") from None
-    truth = _mbes_grid(runs[0])
+    truth = mbes_grid(runs[0])
     if truth is None:
         raise FileNotFoundError(
             f"{runs[0].path}: expected the MBES grid of survey {name!r} under data_dir "
@@ -163,11 +162,6 @@ def tune_table(root: str | Path) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: r["mae"])
 
 
-def fmt_cell(value: Any) -> str:
-    """A table cell: floats to 3 significant digits, anything else as text."""
-    return f"{value:.3g}" if isinstance(value, float) else str(value)
-
-
 def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN-Lambert tuning") -> str:
     """Markdown table of :func:`tune_table` rows."""
     columns = [c for c, _ in SETTINGS]
@@ -178,38 +172,31 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN-Lambert tuning")
         "map MAE and STD of the signed height error (m) and gradient cosine similarity, all "
         "runs on the same MBES cells near those lines. Best MAE first.",
         "",
-        "| " + " | ".join([*columns, "MAE (m)", "STD (m)", "gradient CS", "cells", "run"]) + " |",
-        "|" + "---|" * len(columns) + "---:|---:|---:|---:|---|",
     ]
-    for r in rows:
-        cells = [fmt_cell(r[c]) for c in columns]
-        cells += [f"{r['mae']:.3f}", f"{r['std']:.3f}", f"{r['grad_cs']:.3f}", str(r["n_cells"])]
-        md.append("| " + " | ".join([*cells, r["run"]]) + " |")
+    md += markdown_table(
+        [*columns, "MAE (m)", "STD (m)", "gradient CS", "cells", "run"],
+        (
+            [*(fmt_cell(r[c]) for c in columns), f"{r['mae']:.3f}", f"{r['std']:.3f}"]
+            + [f"{r['grad_cs']:.3f}", r["n_cells"], r["run"]]
+            for r in rows
+        ),
+        "l" * len(columns) + "rrrrl",
+    )
     return "\n".join(md) + "\n"
 
 
 def to_csv(rows: list[dict[str, Any]]) -> str:
     """CSV of :func:`tune_table` rows (settings, metrics, run folder)."""
-    buf = io.StringIO()
-    fields = [*(c for c, _ in SETTINGS), *METRICS, "run"]
-    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
+    return tables.to_csv(rows, [*(c for c, _ in SETTINGS), *METRICS, "run"])
 
 
 def write_table(rows: list[dict[str, Any]], out_dir: str | Path) -> dict[str, Path]:
     """``lambert_tune.md`` and ``lambert_tune.csv`` under ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"md": out / "lambert_tune.md", "csv": out / "lambert_tune.csv"}
-    atomic_write_text(paths["md"], to_markdown(rows))
-    atomic_write_text(paths["csv"], to_csv(rows))
-    return paths
+    return write_tables(out_dir, "lambert_tune", to_markdown(rows), to_csv(rows))
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sss2bathy.eval.lambert_tune ROOT [--out DIR]``."""
+    """``python -m studies.lambert_tune ROOT [--out DIR]``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("root", help="folder of the sweep's runs (searched recursively)")
     p.add_argument("--out", default="outputs/lambert_tune", help="where the table goes")

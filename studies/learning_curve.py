@@ -1,7 +1,7 @@
 """Learning curve of the normal CNN: test MAE against the number of training lines and
 against training time, beside the constant (training-mean) prediction.
 
-    python -m sss2bathy.eval.learning_curve --n-train 8,16,32 --scale demo
+    python -m studies.learning_curve --n-train 8,16,32 --scale demo
     make learning-curve SCALE=demo LC_N_TRAIN=8,16,32
 
 **The test lines stay the same.** ``data.survey.plan.n_train`` alone would not do: the
@@ -40,9 +40,10 @@ from pathlib import Path
 from typing import Any
 
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
+from studies.tables import markdown_table, to_csv, write_tables
 
 RUN_RECORD = "learning_curve_run.json"
-MD_NAME, CSV_NAME, PNG_NAME = "learning_curve.md", "learning_curve.csv", "learning_curve.png"
+STEM = "learning_curve"  # learning_curve.{md,csv,png}
 COLUMNS = (
     "n_train", "n_fit_lines", "n_val_lines", "train_s", "fit_wall_s", "run_s", "dataset",
     "mae", "constant_mae", "skill", "run_dir",
@@ -226,12 +227,7 @@ def _fmt(value: Any) -> str:
 
 
 def learning_curve_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(COLUMNS)
-    for r in rows:
-        writer.writerow([_fmt(r[c]) for c in COLUMNS])
-    return buf.getvalue()
+    return to_csv(({c: _fmt(r[c]) for c in COLUMNS} for r in rows), COLUMNS)
 
 
 def learning_curve_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -246,18 +242,17 @@ def learning_curve_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
         "run). Each cell: CNN MAE / constant (training-mean) MAE = skill. Training time: "
         "the fit's wall seconds minus validation.",
         "",
-        "| n_train | fit lines | training s | " + " | ".join(sets) + " |",
-        "|---:|---:|---:|" + "---:|" * len(sets),
     ]
+    cells = []
     for n in counts:
         first = by[(n, sets[0])]
-        cells = []
+        cells.append([n, first["n_fit_lines"], f"{first['train_s']:.1f}"])
         for s in sets:
             r = by[(n, s)]
-            cells.append(f"{r['mae']:.4f} / {r['constant_mae']:.4f} = {r['skill']:.2f}")
-        lines.append(
-            f"| {n} | {first['n_fit_lines']} | {first['train_s']:.1f} | " + " | ".join(cells) + " |"
-        )
+            cells[-1].append(f"{r['mae']:.4f} / {r['constant_mae']:.4f} = {r['skill']:.2f}")
+    lines += markdown_table(
+        ["n_train", "fit lines", "training s", *sets], cells, "r" * (3 + len(sets))
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -296,18 +291,16 @@ def write_learning_curve(
     """``learning_curve.{md,csv,png}`` in ``out_dir``."""
     if not rows:
         raise ValueError("rows: expected at least one learning-curve row, found none")
-    out = Path(out_dir)
-    md, table, png = out / MD_NAME, out / CSV_NAME, out / PNG_NAME
-    atomic_write_text(md, learning_curve_markdown(rows))
-    atomic_write_text(table, learning_curve_csv(rows))
+    paths = write_tables(out_dir, STEM, learning_curve_markdown(rows), learning_curve_csv(rows))
+    png = Path(out_dir) / f"{STEM}.png"
     plot_learning_curve(rows, png)
-    return md, table, png
+    return paths["md"], paths["csv"], png
 
 
 # ------------------------------------------------------------------------- CLI
 def main(argv: Sequence[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(
-        prog="python -m sss2bathy.eval.learning_curve",
+        prog="python -m studies.learning_curve",
         description="Train the CNN experiment for several training-line counts on one survey "
         "and plot test MAE vs lines and vs training time (module docstring).",
     )

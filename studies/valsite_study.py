@@ -6,21 +6,19 @@ scored alike.
 lines; neither training nor test data) at a few SIREN settings, one run per folder. This
 module reads each finished run's variant and settings from its config and scores every map
 on the **same cells** against the site's MBES grid (the lambert_tune table's reader,
-:func:`sss2bathy.eval.lambert_tune.score_run_folder`), and writes
+:func:`studies.lambert_tune.score_run_folder`), and writes
 ``valsite_study.md`` and ``valsite_study.csv``, grouped by variant, best MAE first.
 
 Runs of more than one survey, or of a survey that is not a validation site (its name must
 contain ``valsite``), are refused: the settings this table chooses must never be chosen on
 the test lines the paper's tables report.
 
-    python -m sss2bathy.eval.valsite_study outputs/valsite_study/demo
+    python -m studies.valsite_study outputs/valsite_study/demo
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -28,9 +26,10 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from sss2bathy.eval.lambert_tune import METRICS, fmt_cell, score_run_folder
 from sss2bathy.eval.report import RunRecord
-from sss2bathy.utils.atomic import atomic_write_text
+from studies import tables
+from studies.lambert_tune import METRICS, score_run_folder
+from studies.tables import fmt_cell, markdown_table, write_tables
 
 log = logging.getLogger("sss2bathy.valsite_study")
 
@@ -71,7 +70,7 @@ def _check_site(name: str) -> None:
 
 def study_table(root: str | Path) -> list[dict[str, Any]]:
     """One row per run below ``root``: its settings, its held-out altimeter MAE, the metrics
-    on the common cells (:func:`sss2bathy.eval.lambert_tune.score_run_folder`) and its
+    on the common cells (:func:`studies.lambert_tune.score_run_folder`) and its
     folder; grouped by variant, best MAE first.
 
     Raises:
@@ -101,42 +100,34 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, valida
         "run scored, and the held-out altimeter MAE (m, the signal a survey without MBES has). "
         "Grouped by variant, best MAE first.",
         "",
-        "| "
-        + " | ".join([*columns, "MAE (m)", "STD (m)", "gradient CS", "held-out alt. MAE (m)"])
-        + " | cells | run |",
-        "|" + "---|" * len(columns) + "---:|---:|---:|---:|---:|---|",
     ]
-    for r in rows:
-        cells = [fmt_cell(r[c]) for c in columns]
-        cells += [f"{r['mae']:.3f}", f"{r['std']:.3f}", f"{r['grad_cs']:.3f}"]
-        cells += [f"{r['holdout_alt_mae']:.3f}", str(r["n_cells"])]
-        md.append("| " + " | ".join([*cells, r["run"]]) + " |")
+    md += markdown_table(
+        [*columns, "MAE (m)", "STD (m)", "gradient CS", "held-out alt. MAE (m)", "cells", "run"],
+        (
+            [*(fmt_cell(r[c]) for c in columns), f"{r['mae']:.3f}", f"{r['std']:.3f}"]
+            + [f"{r['grad_cs']:.3f}", f"{r['holdout_alt_mae']:.3f}", r["n_cells"], r["run"]]
+            for r in rows
+        ),
+        "l" * len(columns) + "rrrrrl",
+    )
     return "\n".join(md) + "\n"
 
 
 def to_csv(rows: list[dict[str, Any]]) -> str:
     """CSV of :func:`study_table` rows."""
-    buf = io.StringIO()
-    fields = [*(c for c, _ in SETTINGS), *METRICS, "holdout_alt_mae", "run"]
-    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
+    return tables.to_csv(rows, [*(c for c, _ in SETTINGS), *METRICS, "holdout_alt_mae", "run"])
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sss2bathy.eval.valsite_study ROOT [--out DIR]``."""
+    """``python -m studies.valsite_study ROOT [--out DIR]``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("root", help="folder of the study's runs (searched recursively)")
     p.add_argument("--out", default=None, help="where the table goes (default: ROOT)")
     args = p.parse_args(argv)
     rows = study_table(args.root)
-    out = Path(args.out or args.root)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "valsite_study.md", to_markdown(rows))
-    atomic_write_text(out / "valsite_study.csv", to_csv(rows))
+    paths = write_tables(args.out or args.root, "valsite_study", to_markdown(rows), to_csv(rows))
     print(to_markdown(rows))
-    print(f"written: {out / 'valsite_study.md'}, {out / 'valsite_study.csv'}")
+    print(f"written: {paths['md']}, {paths['csv']}")
     return 0
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from sss2bathy.eval.lambert_tune import find_runs, main, run_settings, to_csv, tune_table
 from sss2bathy.metrics.bathy import bathy_metrics
 from sss2bathy.survey import BathyGrid, Survey
+from studies.lambert_tune import find_runs, main, run_settings, to_csv, tune_table
 
 SHAPE, CELL = (20, 30), 0.5
 

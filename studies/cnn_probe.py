@@ -2,7 +2,7 @@
 beside a constant prediction, overall and per seabed material (the simulator's truth), with
 the mean signed error (bias) of each.
 
-    python -m sss2bathy.eval.cnn_probe CKPT data/synthetic_d1_demo:test data/synthetic_d2_demo \
+    python -m studies.cnn_probe CKPT data/synthetic_d1_demo:test data/synthetic_d2_demo \
         --constant -0.019
 
 Each survey is ``FOLDER[:SPLIT]`` (no split: all its lines). The prediction is the one
@@ -95,7 +95,7 @@ def probe_survey(
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m sss2bathy.eval.cnn_probe", description=__doc__.split("\n\n")[0]
+        prog="python -m studies.cnn_probe", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("ckpt", help="a NormalCNNModule checkpoint")
     parser.add_argument("surveys", nargs="+", help="survey folders, FOLDER[:SPLIT]")

@@ -29,6 +29,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sss2bathy.eval.metric_curve import read_curve
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
+from studies.tables import markdown_table
 
 CURVE_FILE = "metric_curve.csv"
 
@@ -157,20 +158,17 @@ def to_markdown(result: Mapping[str, Any]) -> str:
             f"{result['reference_epochs_full']} epochs: its goal is its MAE so far and its "
             "time a lower bound of the full schedule's."
         )
-    lines += [
-        "",
-        f"| Run | epochs | final {key} | best | {result['clock']} | time to goal (s) | "
-        "fraction of reference time | time to reference best (s) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    head = ["Run", "epochs", f"final {key}", "best", result["clock"], "time to goal (s)"]
+    head += ["fraction of reference time", "time to reference best (s)"]
+    cells = []
     for label, r in result["runs"].items():
         frac = r["fraction_of_reference_time"]
-        lines.append(
-            f"| {label} | {r['epochs']} | {r['final']:.4f} | {r['best']:.4f} | "
-            f"{r['time_s']:.0f} | {r['time_to_goal_s']:.1f} | "
-            f"{'-' if not math.isfinite(frac) else f'{frac:.3f}'} | "
-            f"{r['time_to_best_goal_s']:.1f} |"
+        cells.append(
+            [label, r["epochs"], f"{r['final']:.4f}", f"{r['best']:.4f}", f"{r['time_s']:.0f}"]
+            + [f"{r['time_to_goal_s']:.1f}", "-" if not math.isfinite(frac) else f"{frac:.3f}"]
+            + [f"{r['time_to_best_goal_s']:.1f}"]
         )
+    lines += ["", *markdown_table(head, cells, "l" + "r" * 7)]
     return "\n".join(lines) + "\n"
 
 
@@ -208,7 +206,7 @@ def write_study(result: Mapping[str, Any], out_dir: str | Path) -> dict[str, Pat
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sss2bathy.eval.schedule_study --run LABEL=DIR ... --reference LABEL``."""
+    """``python -m studies.schedule_study --run LABEL=DIR ... --reference LABEL``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
         "--run",

@@ -1,4 +1,4 @@
-"""Paper-scale CPU study (sss2bathy.eval.paper_cpu_study): table, commands, a tiny run."""
+"""Paper-scale CPU study (studies.paper_cpu_study): table, commands, a tiny run."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from sss2bathy.eval.paper_cpu_study import (
+from studies.paper_cpu_study import (
     DEFAULT_METHODS,
     DEFAULT_SCHEDULES,
     check_preset,

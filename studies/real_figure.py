@@ -1,7 +1,7 @@
 """Figure of a survey simulated over a real grid: the grid's hillshade with the lines, and a
-sidescan waterfall of one line (issue #19).
+sidescan waterfall of one line.
 
-    python -m sss2bathy.sim.real_figure [SURVEY_FOLDER] [OUT_PNG] [LINE]
+    python -m studies.real_figure [SURVEY_FOLDER] [OUT_PNG] [LINE]
 
 defaults: ``data/synthetic_real_1m_demo``, ``outputs/figures/synthetic_real_1m.png`` and the
 survey's longest test line. The survey folder is what ``sss2bathy-prepare
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sss2bathy.sim.render import _pyplot, hillshade, waterfall_image
+from sss2bathy.sim.render import hillshade, waterfall_image
 from sss2bathy.survey import Survey
 from sss2bathy.utils.atomic import save_figure
 
@@ -32,7 +32,11 @@ def render_real_survey(survey: Survey, path: str | Path, line: str | None = None
     if line not in names:
         raise ValueError(f"line: expected one of {names}, found {line!r}")
     chosen = survey.lines[names.index(line)]
-    plt = _pyplot()
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
     origin = {"easting": 0.0, "northing": 0.0, "crs": None, **(survey.origin or {})}
     e0, n0 = float(origin["easting"]), float(origin["northing"])
     grid = survey.grid

@@ -22,9 +22,9 @@
 Times are the curve's ``wall_s`` (seconds since the fit started, map evaluations included;
 loading the survey before the fit is not in it, but is in the run's process wall time).
 
-    python -m sss2bathy.eval.paper_cpu_study --scale paper --budget-min 20
-    python -m sss2bathy.eval.paper_cpu_study --scale paper --data-dir /tmp/base/data --dry-run
-    python -m sss2bathy.eval.paper_cpu_study --survey synthetic_d1_valsite --methods siren_gt_n2d \
+    python -m studies.paper_cpu_study --scale paper --budget-min 20
+    python -m studies.paper_cpu_study --scale paper --data-dir /tmp/base/data --dry-run
+    python -m studies.paper_cpu_study --survey synthetic_d1_valsite --methods siren_gt_n2d \
         --schedules budget --extra data.bin_fraction=1.0
     make paper-cpu-study [ARGS=...]
 """
@@ -32,8 +32,6 @@ loading the survey before the fit is not in it, but is in the run's process wall
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import logging
 import math
@@ -46,15 +44,17 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.eval.schedule_study import load_run_curve
 from sss2bathy.eval.xtf_study import run_logged, survey_config
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.prepare import cache_problem
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
+from studies import tables
+from studies.schedule_study import load_run_curve
+from studies.tables import markdown_table, write_tables
 
 log = logging.getLogger("sss2bathy.paper_cpu_study")
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 PRESET = "synthetic_d1"
 METHODS: dict[str, str] = {
@@ -192,15 +192,15 @@ def to_markdown(
         "",
         "## Survey preparation",
         "",
-        "| step | process wall (s) | in-process (s) | note |",
-        "|---|---:|---:|---|",
     ]
-    for step in ("simulation", "draping"):
-        p = prepare.get(step, {})
-        lines.append(
-            f"| {step} | {_f(p.get('wall_s'), '.1f')} | {_f(p.get('inner_s'), '.1f')} | "
-            f"{p.get('note', '')} |"
-        )
+    lines += markdown_table(
+        ["step", "process wall (s)", "in-process (s)", "note"],
+        (
+            [step, _f(p.get("wall_s"), ".1f"), _f(p.get("inner_s"), ".1f"), p.get("note", "")]
+            for step, p in ((s, prepare.get(s, {})) for s in ("simulation", "draping"))
+        ),
+        "lrrl",
+    )
     head = ["method", "schedule", "best MAE (m)", f"time to {WITHIN:.0%} of best (min)"]
     head += [f"MAE at {k[4:-3]} min" for k in marks]
     head += ["last eval MAE", "exported map MAE", "evals", "steps", "fit wall (min)"]
@@ -213,9 +213,8 @@ def to_markdown(
         "MAE at t = the map the fit held at t (its latest evaluation); '-' = none yet, or "
         "beyond the budget.",
         "",
-        "| " + " | ".join(head) + " |",
-        "|" + "---|" * 2 + "---:|" * (len(head) - 2),
     ]
+    cells_of = []
     for r in rows:
         t = r["t_within_s"]
         cells = [
@@ -230,7 +229,8 @@ def to_markdown(
             str(r["steps"]),
             _f(r["fit_wall_s"] / 60, ".2f"),
         ]
-        lines.append("| " + " | ".join(cells) + " |")
+        cells_of.append(cells)
+    lines += markdown_table(head, cells_of, "ll" + "r" * (len(head) - 2))
     failed = meta.get("failed") or {}
     if failed:
         lines += ["", "Failed runs:", ""] + [f"- {k}: {v}" for k, v in failed.items()]
@@ -238,12 +238,7 @@ def to_markdown(
 
 
 def to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    keys = list(COLUMNS) + _marks(rows)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore", restval="")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
+    return tables.to_csv(rows, list(COLUMNS) + _marks(rows), ignore_extra=True)
 
 
 def curve_figure(
@@ -583,11 +578,10 @@ def run_study(
         "holdout_stop": holdout_stop,
         "revision": _revision(),
         "machine": f"{os.cpu_count()} CPUs",
-        "command": command or f"python -m sss2bathy.eval.paper_cpu_study --scale {scale}",
+        "command": command or f"python -m studies.paper_cpu_study --scale {scale}",
         "failed": failed,
     }
-    atomic_write_text(out / "paper_cpu_study.md", to_markdown(rows, prep, meta))
-    atomic_write_text(out / "paper_cpu_study.csv", to_csv(rows))
+    write_tables(out, "paper_cpu_study", to_markdown(rows, prep, meta), to_csv(rows))
     if curves:
         curve_figure(curves, out / "paper_cpu_study.png", f"{meta['survey']}: map MAE vs time")
     return rows
@@ -677,7 +671,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_study(
         args.out, args.scale, args.budget_min, data_dir, args.methods, args.schedules,
         args.evals_per_epoch, args.threads, args.seed, args.marks_min, args.extra,
-        command="python -m sss2bathy.eval.paper_cpu_study " + " ".join(argv or sys.argv[1:]),
+        command="python -m studies.paper_cpu_study " + " ".join(argv or sys.argv[1:]),
         holdout_stop=args.holdout_stop, sim_workers=args.sim_workers,
         references=references, tabulate_only=args.tabulate, preset=args.survey,
     )  # fmt: skip

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sss2bathy.eval.metric_curve import write_curve
-from sss2bathy.eval.schedule_study import load_run_curve, main, study, time_to_reach
+from studies.schedule_study import load_run_curve, main, study, time_to_reach
 
 
 def _run(tmp_path, name, maes, dt):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from sss2bathy.eval.valsite_study import main, run_settings, study_table, to_csv
 from sss2bathy.metrics.bathy import bathy_metrics
 from sss2bathy.survey import BathyGrid, Survey
+from studies.valsite_study import main, run_settings, study_table, to_csv
 
 SHAPE, CELL = (20, 30), 0.5
 SITE = "synthetic_d1_valsite_tiny"

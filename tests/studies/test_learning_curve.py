@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from sss2bathy.data.windows import SidescanWindowDataModule
-from sss2bathy.eval.learning_curve import (
+from studies.learning_curve import (
     RUN_RECORD,
     main,
     parse_counts,
@@ -99,7 +99,7 @@ def test_counts_and_command():
 def test_two_tiny_runs_share_their_test_lines(tmp_path):
     env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1")
     cmd = [
-        sys.executable, "-m", "sss2bathy.eval.learning_curve", "--n-train", "3,4",
+        sys.executable, "-m", "studies.learning_curve", "--n-train", "3,4",
         "--scale", "tiny", "--out", str(tmp_path / "lc"), f"paths.data_dir={tmp_path / 'data'}",
         f"paths.output_dir={tmp_path / 'outputs'}", "logger=none",
     ]  # fmt: skip
