@@ -284,6 +284,7 @@ def test_sss2bathy_map_with_a_cnn_checkpoint(tmp_path, tiny_xtf):
             f"survey.crs={crs}",
             "survey.n_bins=null",
             "holdout.block_pings=10",
+            "verdict.folds=0",  # one held-out draw (the K-fold verdict: its own test)
             f"hydra.run.dir={run}",
             'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
             *_common(tmp_path),
