@@ -503,7 +503,11 @@ def write_map_mosaic(cfg: DictConfig, train_cfg: DictConfig, run_dir: Path) -> l
                 float(saved["cell_size"]),
             )
     options = {"resolution": float(cfg.mosaic.get("resolution") or 0.1)}
-    written = write_run_mosaic(run_dir, survey, grid=grid, cfg=options)
+    try:
+        written = write_run_mosaic(run_dir, survey, grid=grid, cfg=options)
+    except ValueError as err:  # the map is written: a mosaic that cannot be made is not fatal
+        log.warning("sidescan mosaic not written (the map is): %s", err)
+        return []
     log.info("sidescan mosaic (%s placement) written to %s", placement, run_dir / "mosaic.tif")
     return written
 

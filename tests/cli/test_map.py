@@ -24,6 +24,7 @@ from sss2bathy.cli.map import (
     mosaic_placement,
     train_overrides,
     verdict_folds,
+    write_map_mosaic,
 )
 from sss2bathy.cli.train import HOLDOUT_METRIC, optimized_value
 
@@ -148,6 +149,25 @@ def test_mosaic_placement_is_checked():
     cfg.mosaic.placement = "draped"
     with pytest.raises(ValueError, match="mosaic.placement: expected one of map, flat, none"):
         check_map_config(cfg)
+
+
+def test_a_mosaic_that_cannot_be_made_is_a_warning_not_a_failed_map(tmp_path, monkeypatch, caplog):
+    import sss2bathy.eval.mosaic as mosaic_module
+    import sss2bathy.survey as survey_module
+
+    def refuse(*args, **kwargs):
+        raise ValueError("survey 'x': no bin hits the map")
+
+    monkeypatch.setattr(survey_module.Survey, "load", staticmethod(lambda folder: object()))
+    monkeypatch.setattr(mosaic_module, "write_run_mosaic", refuse)
+    cfg = OmegaConf.load(CONF / "map.yaml")
+    cfg.mosaic.placement = "flat"
+    train_cfg = OmegaConf.create(
+        {"paths": {"data_dir": str(tmp_path)}, "data": {"survey": {"name": "x"}}}
+    )
+    with caplog.at_level("WARNING", logger="sss2bathy.map"):
+        assert write_map_mosaic(cfg, train_cfg, tmp_path) == []
+    assert "sidescan mosaic not written (the map is): survey 'x': no bin hits" in caplog.text
 
 
 def test_map_settings_choice_is_checked():
