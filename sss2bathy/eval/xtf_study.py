@@ -331,14 +331,18 @@ def to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "XTF study") -> 
     return "\n".join(md) + "\n"
 
 
-def to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    """CSV of the study rows (:data:`COLUMNS`)."""
+def _csv(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(COLUMNS), lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
     writer.writeheader()
     for r in rows:
-        writer.writerow({c: r.get(c) for c in COLUMNS})
+        writer.writerow({c: r.get(c) for c in columns})
     return buf.getvalue()
+
+
+def to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
+    """CSV of the study rows (:data:`COLUMNS`)."""
+    return _csv(rows, COLUMNS)
 
 
 def write_table(rows: Sequence[Mapping[str, Any]], out_dir: str | Path) -> dict[str, Path]:
@@ -509,12 +513,7 @@ def verdict_to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "Verdict
 
 def verdict_to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     """CSV of the verdict study rows (:data:`VERDICT_COLUMNS`)."""
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(VERDICT_COLUMNS), lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({c: r.get(c) for c in VERDICT_COLUMNS})
-    return buf.getvalue()
+    return _csv(rows, VERDICT_COLUMNS)
 
 
 def map_on_grid(

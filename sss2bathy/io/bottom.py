@@ -45,7 +45,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 
-__all__ = ["BottomPicks", "calibrate_to_altimeter", "detect_first_return", "detector_accuracy"]
+__all__ = [
+    "BottomPicks",
+    "calibrate_to_altimeter",
+    "detect_first_return",
+    "detector_accuracy",
+    "running_median",
+]
 
 
 @dataclass(frozen=True)
@@ -125,13 +131,22 @@ def _auto_blanking(s: np.ndarray, coarse_fraction: float, pad_bins: int) -> int:
     return min(drop + settled + pad_bins, prof.size)
 
 
-def _running_nanmedian(x: np.ndarray, ok: np.ndarray, size: int) -> np.ndarray:
-    """Running median over the ``ok`` entries only (in order), window ``size`` (odd)."""
-    out = x.copy()
+def running_median(
+    x: np.ndarray,
+    ok: np.ndarray,
+    size: int,
+    *,
+    mode: str = "reflect",
+    fill: float | None = None,
+) -> np.ndarray:
+    """Running median over the ``ok`` entries only (in order), window ``size`` (odd; shrunk
+    to the number of entries); the other entries keep ``x`` (``fill=None``) or get ``fill``.
+    ``mode``: :func:`scipy.ndimage.median_filter`'s edge mode."""
+    out = x.copy() if fill is None else np.full(x.shape, fill, dtype=np.float64)
     idx = np.flatnonzero(ok)
-    if size > 1 and idx.size > 1:
-        win = min(size, 2 * ((idx.size - 1) // 2) + 1)
-        out[idx] = median_filter(x[idx], size=win, mode="reflect")
+    if idx.size:
+        win = max(1, min(size, 2 * ((idx.size - 1) // 2) + 1))
+        out[idx] = median_filter(x[idx], size=win, mode=mode)
     return out
 
 
@@ -291,7 +306,7 @@ def detect_first_return(
     found &= altitude > 0
     altitude = np.where(found, altitude, np.nan)
 
-    altitude = _running_nanmedian(altitude, found, median_pings)
+    altitude = running_median(altitude, found, median_pings)
     interpolated = np.zeros(P, bool)
     idx = np.flatnonzero(found)
     if max_fill_pings > 0 and idx.size >= 2:

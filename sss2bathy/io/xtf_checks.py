@@ -27,6 +27,7 @@ from scipy.ndimage import median_filter
 from scipy.stats import theilslopes
 
 from sss2bathy.geometry.seabed import flat_seabed_depression
+from sss2bathy.io.bottom import running_median
 
 __all__ = [
     "AltimeterCheck",
@@ -187,16 +188,6 @@ def check_altimeter(
     )
 
 
-def _running_median(x: np.ndarray, ok: np.ndarray, size: int) -> np.ndarray:
-    """Running median over the ``ok`` entries (in order), NaN elsewhere."""
-    out = np.full(x.shape, np.nan)
-    idx = np.flatnonzero(ok)
-    if idx.size:
-        win = min(size, 2 * ((idx.size - 1) // 2) + 1)
-        out[idx] = median_filter(x[idx], size=win, mode="nearest")
-    return out
-
-
 def implausible_altitude(
     altitude_m: np.ndarray,
     ok: np.ndarray,
@@ -226,7 +217,7 @@ def implausible_altitude(
     with_fr = rest & np.isfinite(fr) if check is not None else np.zeros_like(rest)
     alone = rest & ~with_fr
     if alone.any():
-        dev = alt - _running_median(alt, rest, window)
+        dev = alt - running_median(alt, rest, window, mode="nearest", fill=np.nan)
         limit = max(4.0 * robust_sigma(dev[rest]), 3.0 * floor_m)
         jump |= alone & (np.abs(dev) > limit)
     idx = np.flatnonzero(with_fr)
