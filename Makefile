@@ -87,7 +87,7 @@ map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> ma
 
 .PHONY: xtf-study
 xtf-study: install ## Generated AUV XTF surveys without MBES: held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
-	OMP_NUM_THREADS=1 $(BIN)/python -m sss2bathy.eval.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
+	OMP_NUM_THREADS=1 $(BIN)/python -m studies.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
 
 d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
 	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \

@@ -44,13 +44,13 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.eval.xtf_study import run_logged, survey_config
 from sss2bathy.sim.config import SyntheticSurveyConfig
 from sss2bathy.sim.prepare import cache_problem
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
 from studies import tables
 from studies.schedule_study import load_run_curve
 from studies.tables import markdown_table, write_tables
+from studies.xtf_study import run_logged, survey_config
 
 log = logging.getLogger("sss2bathy.paper_cpu_study")
 

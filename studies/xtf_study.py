@@ -1,6 +1,6 @@
 """XTF study: does the sidescan beat interpolating the altimeter on an AUV survey without MBES?
 
-Issue 16's targets, measured on generated AUV-like XTF surveys:
+Measured on generated AUV-like XTF surveys:
 
 1. :func:`make_survey` simulates ``synthetic_d1`` (``plan.mount=auv``, constant altitude) at
    a scale, seeded, and writes the lines of one split to XTF with :func:`write_xtf`, after
@@ -26,17 +26,15 @@ table does not report (e.g. 0) and report on others. Variants with
 ``model.select_best=holdout_alt_mae`` choose the final map *by* the held-out MAE, so their
 held-out MAE is optimistic; the table marks them.
 
-    python -m sss2bathy.eval.xtf_study --seeds 1 2 3 --out outputs/xtf_study
-    python -m sss2bathy.eval.xtf_study --cnn-checkpoint outputs/runs/cnn/<run>/checkpoints/last.ckpt
+    python -m studies.xtf_study --seeds 1 2 3 --out outputs/xtf_study
+    python -m studies.xtf_study --cnn-checkpoint outputs/runs/cnn/<run>/checkpoints/last.ckpt
     make xtf-study [CKPT=...] [ARGS=...]
-    python -m sss2bathy.eval.xtf_study --verdict-folds 5 --scale tiny --seeds 1 2 3
+    python -m studies.xtf_study --verdict-folds 5 --scale tiny --seeds 1 2 3
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import logging
 import math
@@ -66,10 +64,12 @@ from sss2bathy.survey.model import (
     Survey,
 )
 from sss2bathy.utils.atomic import atomic_path, atomic_write_text
+from studies.tables import to_csv as to_csv_table
+from studies.tables import write_tables
 
 log = logging.getLogger("sss2bathy.xtf_study")
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[1] / "conf"
 TRUTH_FILE = "truth.npz"
 
 # variant -> extra sss2bathy-map arguments (the SIREN schedule); "demo" = the scale's own
@@ -331,28 +331,14 @@ def to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "XTF study") -> 
     return "\n".join(md) + "\n"
 
 
-def _csv(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({c: r.get(c) for c in columns})
-    return buf.getvalue()
-
-
 def to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     """CSV of the study rows (:data:`COLUMNS`)."""
-    return _csv(rows, COLUMNS)
+    return to_csv_table(rows, COLUMNS, ignore_extra=True)
 
 
 def write_table(rows: Sequence[Mapping[str, Any]], out_dir: str | Path) -> dict[str, Path]:
     """``xtf_study.md`` and ``xtf_study.csv`` under ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"md": out / "xtf_study.md", "csv": out / "xtf_study.csv"}
-    atomic_write_text(paths["md"], to_markdown(rows))
-    atomic_write_text(paths["csv"], to_csv(rows))
-    return paths
+    return write_tables(out_dir, "xtf_study", to_markdown(rows), to_csv(rows))
 
 
 # ---------------------------------------------------------------- verdict against the MBES
@@ -513,7 +499,7 @@ def verdict_to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "Verdict
 
 def verdict_to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     """CSV of the verdict study rows (:data:`VERDICT_COLUMNS`)."""
-    return _csv(rows, VERDICT_COLUMNS)
+    return to_csv_table(rows, VERDICT_COLUMNS, ignore_extra=True)
 
 
 def map_on_grid(
@@ -979,13 +965,12 @@ def run_verdict_study(
         log.info("%s", row)
         rows.append(row)
         out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "verdict_study.md", verdict_to_markdown(rows))
-        atomic_write_text(out / "verdict_study.csv", verdict_to_csv(rows))
+        write_tables(out, "verdict_study", verdict_to_markdown(rows), verdict_to_csv(rows))
     return rows
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sss2bathy.eval.xtf_study [--seeds ...] [--cnn-checkpoint PATH] ...``."""
+    """``python -m studies.xtf_study [--seeds ...] [--cnn-checkpoint PATH] ...``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
         "--out",

@@ -10,7 +10,13 @@ import math
 import numpy as np
 import pytest
 
-from sss2bathy.eval.xtf_study import (
+from sss2bathy.survey.model import (
+    ALTITUDE_DETECTED,
+    ALTITUDE_INTERPOLATED,
+    ALTITUDE_MISSING,
+    ALTITUDE_RECORDED,
+)
+from studies.xtf_study import (
     StudySurvey,
     dropout_pings,
     failed_row,
@@ -23,12 +29,6 @@ from sss2bathy.eval.xtf_study import (
     swath_overlap,
     to_csv,
     to_markdown,
-)
-from sss2bathy.survey.model import (
-    ALTITUDE_DETECTED,
-    ALTITUDE_INTERPOLATED,
-    ALTITUDE_MISSING,
-    ALTITUDE_RECORDED,
 )
 
 

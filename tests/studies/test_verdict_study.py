@@ -1,4 +1,4 @@
-"""The verdict study of ``sss2bathy.eval.xtf_study``: the verdict's calls, the MBES's call,
+"""The verdict study of ``studies.xtf_study``: the verdict's calls, the MBES's call,
 their agreement and table, and resampling a map onto the MBES grid."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from sss2bathy.eval.xtf_study import (
+from sss2bathy.survey.grid import BathyGrid
+from studies.xtf_study import (
     StudySurvey,
     map_command,
     map_on_grid,
@@ -24,7 +25,6 @@ from sss2bathy.eval.xtf_study import (
     verdict_to_csv,
     verdict_to_markdown,
 )
-from sss2bathy.survey.grid import BathyGrid
 
 
 def _verdict(heights_winner, interp_winner, outcome="inconclusive"):
