@@ -84,12 +84,18 @@ def window_starts(n: int, size: int, overlap: float = 0.75) -> np.ndarray:
 
 
 def line_windows(
-    n_pings: int, n_bins: int, window_pings: int, window_bins: int, overlap: float = 0.75
+    n_pings: int,
+    n_bins: int,
+    window_pings: int,
+    window_bins: int,
+    overlap: float = 0.75,
+    overlap_bins: float | None = None,
 ) -> np.ndarray:
     """All window origins ``(K, 2)`` int64 ``[ping_start, bin_start]`` covering a waterfall.
 
     Nothing is skipped, so predictions of these windows can be stitched into a whole
-    line (per head). Raises if the line is smaller than a window.
+    line (per head). ``overlap_bins``: the overlap across track (None: ``overlap``). Raises
+    if the line is smaller than a window.
     """
     if n_pings < window_pings:
         raise ValueError(
@@ -100,7 +106,9 @@ def line_windows(
             f"n_bins: expected at least window_bins={window_bins} bins, found {n_bins}"
         )
     p = window_starts(int(n_pings), int(window_pings), overlap)
-    b = window_starts(int(n_bins), int(window_bins), overlap)
+    b = window_starts(
+        int(n_bins), int(window_bins), overlap if overlap_bins is None else overlap_bins
+    )
     return np.stack(np.meshgrid(p, b, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
@@ -219,6 +227,7 @@ class SidescanWindowDataset(Dataset):
         min_valid_fraction: float = 0.2,
         flip_augment: bool = False,
         name: str = "windows",
+        overlap_bins: float | None = None,
     ) -> None:
         if not lines:
             raise ValueError(f"lines: expected at least one line for {name}, found none")
@@ -257,7 +266,7 @@ class SidescanWindowDataset(Dataset):
             if P < window_pings:
                 short.append(ln.name)
                 continue
-            origins = line_windows(P, B, window_pings, window_bins, overlap)
+            origins = line_windows(P, B, window_pings, window_bins, overlap, overlap_bins)
             counts = _window_sums(ln.valid, origins, window_pings, window_bins)
             keep = counts >= max(need, 1)
             low += int((~keep).sum())
@@ -411,6 +420,28 @@ class ResumableDataLoader(DataLoader):
 
 
 # -------------------------------------------------------------------------- datamodule
+def union_envelopes(envelopes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """One sonar envelope spanning several (:func:`~sss2bathy.data.sonar_envelope.
+    sonar_envelope` of each training survey): per setting the min of the lows and the max
+    of the highs; ``survey`` names them all (``a+b``), ``n_lines`` sums them."""
+    if not envelopes:
+        raise ValueError("envelopes: expected at least one sonar envelope, found none")
+    settings: dict[str, list[float]] = {}
+    for env in envelopes:
+        for key, (lo, hi) in env["settings"].items():
+            old = settings.get(key)
+            settings[key] = [float(lo), float(hi)] if old is None else [
+                min(old[0], float(lo)), max(old[1], float(hi))
+            ]  # fmt: skip
+    first = envelopes[0]
+    return {
+        "version": first["version"],
+        "survey": "+".join(str(e["survey"]) for e in envelopes),
+        "n_lines": int(sum(int(e["n_lines"]) for e in envelopes)),
+        "settings": {k: settings[k] for k in first["settings"]} | settings,
+    }
+
+
 def _to_dict(cfg: Any, name: str) -> dict[str, Any]:
     """A plain dict from a mapping or an OmegaConf DictConfig (interpolations resolved)."""
     try:
@@ -441,6 +472,11 @@ class SidescanWindowDataModule(pl.LightningDataModule):
     index 0 the survey's test split, then one loader per entry of ``test_surveys`` (all
     of its lines), in order; ``test_set_names`` names them.
 
+    Several seabeds (a pretrained CNN): with ``train_surveys`` the training lines are the
+    ``train`` splits of those surveys, pooled (line names ``<survey>/<line>``), and the
+    survey's own lines serve its ``test`` split only; with ``val_surveys`` the validation
+    lines are all lines of those surveys instead of lines carved from the training lines.
+
     Args:
         survey: the ``data/survey`` config (``kind``: synthetic | folder | xtf, ...).
         data_dir: where surveys are generated/cached (``paths.data_dir``).
@@ -461,8 +497,15 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             (:class:`~sss2bathy.data.masks.SonarMaskConfig` fields; ``None``: defaults).
         input_channels: the network's input channels (``None``: ``[intensity]``); stored in
             the checkpoint with ``sonar_mask`` so prediction builds the same inputs.
+        train_surveys: ``data/survey`` configs whose ``train`` splits are the training lines
+            (None: the survey's own training lines).
+        val_surveys: ``data/survey`` configs whose lines (all of them) validate (None: lines
+            carved from the training lines with ``val_fraction``).
+        overlap_bins: overlap of consecutive windows across track (None: ``overlap``); with
+            lines wider than ``window_bins``.
 
-    ``setup("fit")`` records the training lines' sonar in :attr:`sonar_envelope`, which
+    ``setup("fit")`` records the training lines' sonar (over every training survey) in
+    :attr:`sonar_envelope`, which
     :class:`~sss2bathy.modules.normal_cnn.NormalCNNModule` stores in its checkpoints (the
     survey the CNN's normals are computed for is compared with it).
     """
@@ -486,6 +529,9 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         n_train_lines: int | None = None,
         sonar_mask: Mapping[str, Any] | None = None,
         input_channels: Sequence[str] | None = None,
+        train_surveys: Sequence[Mapping[str, Any]] | None = None,
+        val_surveys: Sequence[Mapping[str, Any]] | None = None,
+        overlap_bins: float | None = None,
     ) -> None:
         super().__init__()
         if n_train_lines is not None and not (
@@ -505,6 +551,22 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         self.test_survey_cfgs = [
             _survey_dict(c, f"test_surveys[{i}]") for i, c in enumerate(test_surveys or [])
         ]
+        self.train_survey_cfgs = [
+            _survey_dict(c, f"data.train_surveys[{i}]") for i, c in enumerate(train_surveys or [])
+        ]
+        self.val_survey_cfgs = [
+            _survey_dict(c, f"data.val_surveys[{i}]") for i, c in enumerate(val_surveys or [])
+        ]
+        if self.train_survey_cfgs and n_train_lines is not None:
+            raise ValueError(
+                "data.n_train_lines: expected null with data.train_surveys (the subset applies "
+                f"to the survey's own training lines), found {n_train_lines}"
+            )
+        if overlap_bins is not None:
+            require_number(
+                "overlap_bins", overlap_bins, lambda v: 0 <= v < 1, "a fraction in [0, 1) or null"
+            )
+        self.overlap_bins = overlap_bins
         drape_map = None if drape is None else _to_dict(drape, "drape")
         self.drape_cfg = DrapeConfig.coerce(drape_map)
         require_int("window_pings", window_pings)
@@ -541,6 +603,9 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                 "n_train_lines": n_train_lines,
                 "sonar_mask": self.sonar_mask.to_dict(),
                 "input_channels": list(self.input_channels),
+                "train_surveys": self.train_survey_cfgs or None,
+                "val_surveys": self.val_survey_cfgs or None,
+                "overlap_bins": overlap_bins,
             },
             logger=False,
         )
@@ -560,12 +625,19 @@ class SidescanWindowDataModule(pl.LightningDataModule):
 
         return load_survey(survey_cfg, self.data_dir)
 
-    def _window_lines(self, survey: Survey, folder: Path, names: list[str]) -> list[WindowLine]:
+    def _window_lines(
+        self, survey: Survey, folder: Path, names: list[str], prefix: bool = False
+    ) -> list[WindowLine]:
+        """The lines ``names`` of ``survey``, named ``<survey>/<line>`` when ``prefix``."""
         draped = drape_survey(survey, folder, self.drape_cfg, lines=names)
-        return [
+        lines = [
             WindowLine.from_draped(survey.line(n), draped[n], self.sonar_mask, self.input_channels)
             for n in names
         ]
+        if prefix:
+            for ln in lines:
+                ln.name = f"{survey.name}/{ln.name}"
+        return lines
 
     def _dataset(self, lines: list[WindowLine], name: str, train: bool) -> SidescanWindowDataset:
         return SidescanWindowDataset(
@@ -576,11 +648,15 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             min_valid_fraction=self.min_valid_fraction,
             flip_augment=train and self.flip_augment,
             name=name,
+            overlap_bins=self.overlap_bins,
         )
 
     def prepare_data(self) -> None:
         """Generate/import the surveys and drape them (both cached on disk)."""
-        for cfg in [self.survey_cfg, *self.test_survey_cfgs]:
+        for cfg in [
+            self.survey_cfg, *self.train_survey_cfgs, *self.val_survey_cfgs,
+            *self.test_survey_cfgs,
+        ]:  # fmt: skip
             survey, folder = self._load(cfg)
             drape_survey(survey, folder, self.drape_cfg)
 
@@ -603,7 +679,9 @@ class SidescanWindowDataModule(pl.LightningDataModule):
         if not (need_fit or need_test):
             return
         survey, folder = self._load(self.survey_cfg)
-        if need_fit:
+        if need_fit and self.train_survey_cfgs:
+            self._setup_pooled()
+        elif need_fit:
             train = self._split(survey, "train")
             if self.n_train_lines is not None:
                 if self.n_train_lines > len(train):
@@ -619,10 +697,14 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                     f"survey '{survey.name}': expected at least 2 training lines to carve a "
                     f"validation line from, found {len(train)}"
                 )
-            n_val = min(len(train) - 1, max(1, int(round(self.val_fraction * len(train)))))
-            pick = set(np.random.default_rng(self.seed).permutation(len(train))[:n_val].tolist())
-            self.val_lines = [n for i, n in enumerate(train) if i in pick]
-            self.train_lines = [n for i, n in enumerate(train) if i not in pick]
+            if self.val_survey_cfgs:
+                self.val_lines, self.train_lines = [], list(train)
+            else:
+                n_val = min(len(train) - 1, max(1, int(round(self.val_fraction * len(train)))))
+                rng = np.random.default_rng(self.seed)
+                pick = set(rng.permutation(len(train))[:n_val].tolist())
+                self.val_lines = [n for i, n in enumerate(train) if i in pick]
+                self.train_lines = [n for i, n in enumerate(train) if i not in pick]
             self.sonar_envelope = sonar_envelope(survey, self.train_lines)
             log.info(
                 "training sonar (%d lines of '%s'): %s",
@@ -635,9 +717,12 @@ class SidescanWindowDataModule(pl.LightningDataModule):
             self.train_set = self._dataset(
                 [by_name[n] for n in self.train_lines], f"{survey.name}:train", train=True
             )
-            self.val_set = self._dataset(
-                [by_name[n] for n in self.val_lines], f"{survey.name}:val", train=False
-            )
+            if self.val_survey_cfgs:
+                self._setup_val_surveys()
+            else:
+                self.val_set = self._dataset(
+                    [by_name[n] for n in self.val_lines], f"{survey.name}:val", train=False
+                )
         if need_test:
             test = self._split(survey, "test")
             sets = [
@@ -655,6 +740,55 @@ class SidescanWindowDataModule(pl.LightningDataModule):
                 )
             self.test_sets = sets
             self.test_set_names = [s.name for s in sets]
+
+    def _setup_val_surveys(self) -> None:
+        """The validation set: all lines of ``val_surveys`` (named ``<survey>/<line>``)."""
+        lines: list[WindowLine] = []
+        for cfg in self.val_survey_cfgs:
+            extra, folder = self._load(cfg)
+            lines += self._window_lines(extra, folder, [ln.name for ln in extra.lines], True)
+        self.val_lines = [ln.name for ln in lines]
+        names = "+".join(dict.fromkeys(n.split("/")[0] for n in self.val_lines))
+        self.val_set = self._dataset(lines, f"{names}:val", train=False)
+
+    def _setup_pooled(self) -> None:
+        """Training lines pooled from the ``train`` splits of ``train_surveys``."""
+        lines: list[WindowLine] = []
+        envelopes = []
+        for cfg in self.train_survey_cfgs:
+            survey, folder = self._load(cfg)
+            names = self._split(survey, "train")
+            envelopes.append(sonar_envelope(survey, names))
+            lines += self._window_lines(survey, folder, names, prefix=True)
+        if len({ln.name for ln in lines}) != len(lines):
+            raise ValueError(
+                "data.train_surveys: expected surveys with distinct names, found "
+                f"{[e['survey'] for e in envelopes]}"
+            )
+        self.sonar_envelope = union_envelopes(envelopes)
+        log.info(
+            "training sonar (%d lines of %s): %s",
+            len(lines),
+            self.sonar_envelope["survey"],
+            describe(self.sonar_envelope["settings"]),
+        )
+        if self.val_survey_cfgs:
+            train = lines
+            self._setup_val_surveys()
+        else:
+            if len(lines) < 2:
+                raise ValueError(
+                    "data.train_surveys: expected at least 2 training lines to carve a "
+                    f"validation line from, found {len(lines)}"
+                )
+            n_val = min(len(lines) - 1, max(1, int(round(self.val_fraction * len(lines)))))
+            pick = set(np.random.default_rng(self.seed).permutation(len(lines))[:n_val].tolist())
+            train = [ln for i, ln in enumerate(lines) if i not in pick]
+            val = [ln for i, ln in enumerate(lines) if i in pick]
+            self.val_lines = [ln.name for ln in val]
+            self.val_set = self._dataset(val, "train_surveys:val", train=False)
+        self.train_lines = [ln.name for ln in train]
+        self.train_set = self._dataset(train, "train_surveys:train", train=True)
 
     # ----------------------------------------------------------------- loaders
     def _loader(self, ds: Dataset, sampler: Sampler | None = None) -> DataLoader:

@@ -153,6 +153,62 @@ def normal_aware_loss(
     return _masked_mean(weight * pixel_loss(pred, target, base, beta), mask)
 
 
+def masked_box_mean(
+    values: torch.Tensor, mask: torch.Tensor, pings: int, bins: int | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Masked moving average of ``values [..., H, W]`` over ``pings x bins`` boxes.
+
+    Returns ``(mean, count)`` of shape ``[..., H - pings + 1, W' ]`` (boxes wholly inside
+    the window, stride 1; ``bins=None``: the whole width, ``W' = 1`` -- the swath average of
+    each run of ``pings`` pings): the mean of the valid values in each box and the number of
+    valid pixels it holds (mean 0 where none).
+    """
+    if values.ndim < 2:
+        raise ValueError(f"values: expected at least 2 dims [..., H, W], found {values.ndim}")
+    h, w = values.shape[-2:]
+    bins = w if bins is None else bins
+    if not (1 <= pings <= h and 1 <= bins <= w):
+        raise ValueError(
+            f"low-pass box: expected 1 <= pings <= {h} and 1 <= bins <= {w} (the window), "
+            f"found {pings} x {bins}"
+        )
+    lead = values.shape[:-2]
+    m = mask.to(values.dtype).reshape(-1, 1, h, w)
+    v = torch.where(mask, values, torch.zeros_like(values)).reshape(-1, 1, h, w)
+    area = float(pings * bins)
+    total = nn.functional.avg_pool2d(v, (pings, bins), stride=1) * area
+    count = nn.functional.avg_pool2d(m, (pings, bins), stride=1) * area
+    mean = total / count.clamp_min(1.0)
+    out_shape = (*lead, *mean.shape[-2:])
+    return mean.reshape(out_shape), count.reshape(out_shape)
+
+
+def lowpass_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    pings: int = 16,
+    bins: int | None = None,
+    min_fraction: float = 0.25,
+) -> torch.Tensor:
+    """The error of low-passed n_lat: ``mean |box(pred) - box(target)|`` over boxes.
+
+    ``box`` is the masked ``pings x bins`` moving average (:func:`masked_box_mean`, the same
+    valid pixels for prediction and truth; ``bins=None``: the swath average over the
+    window's width). Only boxes with at least ``min_fraction`` of their pixels valid count.
+    This is the error a map integrates (the part of the n_lat error correlated over tens of
+    bins and pings); a per-pixel loss barely sees it. ``0`` (with grad) if no box counts.
+    """
+    _check(pred, mask, target)
+    require_number("min_fraction", min_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
+    target = _safe_target(pred, target, mask)
+    p_mean, count = masked_box_mean(pred, mask, pings, bins)
+    t_mean, _ = masked_box_mean(target, mask, pings, bins)
+    width = pred.shape[-1] if bins is None else bins
+    keep = count >= max(1.0, min_fraction * pings * width)
+    return _masked_mean((p_mean - t_mean).abs(), keep)
+
+
 def tv_loss(
     pred: torch.Tensor,
     mask: torch.Tensor,
@@ -194,10 +250,14 @@ class NormalLoss(nn.Module):
         detach_lambda: see :func:`normal_aware_weight`.
         tv_across_track: weight of the across-track (bins) TV term, >= 0.
         tv_along_track: weight of the along-track (pings) TV term, >= 0.
+        lowpass_weight: weight of the low-pass term (:func:`lowpass_loss`), >= 0 (0: off).
+        lowpass_pings, lowpass_bins: its box (``lowpass_bins=None``: the window's width,
+            i.e. the swath average of ``lowpass_pings`` pings).
 
     Calling it with ``(pred, target, mask)`` returns a dict: ``loss`` (the total to
     minimise), the data term under its key in :data:`DATA_TERM_KEYS` (``loss_na`` for the
-    normal-aware kind) and ``loss_tv`` (the weighted TV sum).
+    normal-aware kind), ``loss_tv`` (the weighted TV sum) and, when its weight is not 0,
+    ``loss_lp`` (the unweighted low-pass term).
     """
 
     def __init__(
@@ -208,6 +268,9 @@ class NormalLoss(nn.Module):
         detach_lambda: bool = True,
         tv_across_track: float = 0.0,
         tv_along_track: float = 0.0,
+        lowpass_weight: float = 0.0,
+        lowpass_pings: int = 16,
+        lowpass_bins: int | None = None,
     ) -> None:
         super().__init__()
         require_choice("kind", kind, KINDS)
@@ -218,6 +281,15 @@ class NormalLoss(nn.Module):
             ("tv_along_track", tv_along_track),
         ):
             require_number(name, value, lambda v: v >= 0, "a weight >= 0")
+        require_number("lowpass_weight", lowpass_weight, lambda v: v >= 0, "a weight >= 0")
+        for name, value in (("lowpass_pings", lowpass_pings), ("lowpass_bins", lowpass_bins)):
+            if value is None and name == "lowpass_bins":
+                continue
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"loss.{name}: expected an integer >= 1, found {value!r}")
+        self.lowpass_weight = float(lowpass_weight)
+        self.lowpass_pings = int(lowpass_pings)
+        self.lowpass_bins = None if lowpass_bins is None else int(lowpass_bins)
         self.kind = kind
         self.base = base
         self.beta = float(beta)
@@ -252,6 +324,9 @@ class NormalLoss(nn.Module):
             "detach_lambda": self.detach_lambda,
             "tv_across_track": self.tv_across_track,
             "tv_along_track": self.tv_along_track,
+            "lowpass_weight": self.lowpass_weight,
+            "lowpass_pings": self.lowpass_pings,
+            "lowpass_bins": self.lowpass_bins,
         }
 
     def data_term(
@@ -271,7 +346,14 @@ class NormalLoss(nn.Module):
         """``pred, target [B, 1, H, W]``, ``mask [B, 1, H, W]`` bool -> dict of scalars."""
         data = self.data_term(pred, target, mask)
         tv = tv_loss(pred, mask, self.tv_across_track, self.tv_along_track)
-        return {"loss": data + tv, DATA_TERM_KEYS[self.kind]: data, "loss_tv": tv}
+        out = {"loss": data + tv, DATA_TERM_KEYS[self.kind]: data, "loss_tv": tv}
+        if self.lowpass_weight > 0:
+            pings = min(self.lowpass_pings, pred.shape[-2])
+            bins = None if self.lowpass_bins is None else min(self.lowpass_bins, pred.shape[-1])
+            lp = lowpass_loss(pred, target, mask, pings, bins)
+            out["loss"] = out["loss"] + self.lowpass_weight * lp
+            out["loss_lp"] = lp
+        return out
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v}" for k, v in self.config().items())

@@ -26,7 +26,7 @@ from sss2bathy.callbacks import NormalImageLogger
 from sss2bathy.callbacks.hparams import flatten
 from sss2bathy.data.sonar_envelope import CHECKPOINT_KEY as SONAR_ENVELOPE_KEY
 from sss2bathy.eval.cnn_table import NLAT_PREFIX
-from sss2bathy.losses.normal import NormalLoss
+from sss2bathy.losses.normal import NormalLoss, lowpass_loss
 from sss2bathy.metrics.normal import NormalMetrics
 from sss2bathy.modules.cnn_parts import (
     COMPILED_PREFIX,
@@ -39,6 +39,17 @@ from sss2bathy.modules.cnn_parts import (
 from sss2bathy.utils.checks import require_bool
 
 log = logging.getLogger(__name__)
+
+#: the box of the logged low-pass n_lat error ``{stage}/nlat_lp_mae`` (pings x bins, within
+#: each window: :func:`~sss2bathy.losses.normal.lowpass_loss`)
+LOWPASS_BOX = (16, 32)
+
+
+def window_lowpass_mae(pred: torch.Tensor, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    """MAE of the :data:`LOWPASS_BOX`-averaged n_lat in each window (the error a map feels)."""
+    pings = min(LOWPASS_BOX[0], pred.shape[-2])
+    bins = min(LOWPASS_BOX[1], pred.shape[-1])
+    return lowpass_loss(pred.detach(), batch["n_lat"], batch["mask"], pings, bins)
 
 
 class NormalCNNModule(pl.LightningModule):
@@ -167,6 +178,8 @@ class NormalCNNModule(pl.LightningModule):
         self._log_losses("val", losses, n, on_step=False, on_epoch=True, sync_dist=True)
         self.val_metrics.update(pred, batch["n_lat"], batch["mask"])
         self.log_dict(self.val_metrics, on_step=False, on_epoch=True, batch_size=n, prog_bar=True)
+        lp = window_lowpass_mae(pred, batch)
+        self.log(f"val/{NLAT_PREFIX}lp_mae", lp, on_step=False, on_epoch=True, batch_size=n)
 
     def test_set_name(self, dataloader_idx: int) -> str | None:
         """Name of a test dataloader: ``datamodule.test_set_names[idx]`` when the datamodule
@@ -198,6 +211,10 @@ class NormalCNNModule(pl.LightningModule):
                 f"{prefix}{term}", value, batch_size=n, add_dataloader_idx=False, sync_dist=True
             )
         metrics.update(pred, batch["n_lat"], batch["mask"])
+        self.log(
+            f"{prefix}{NLAT_PREFIX}lp_mae", window_lowpass_mae(pred, batch), batch_size=n,
+            add_dataloader_idx=False, sync_dist=True,
+        )  # fmt: skip
         # created after Lightning indexed the module's metrics: name their attribute path
         for base, metric in metrics.items(keep_base=True, copy_state=False):
             self.log(
