@@ -347,3 +347,153 @@ def write_cnn_bias(
     atomic_write_text(paths[1], _rows_csv(ranged, RANGE_COLUMNS))
     plot_cnn_bias(lines, ranged, paths[2])
     return paths
+
+
+# ------------------------------------------------------------------- scale split
+#: the low-pass boxes of :func:`scale_split` (pings along track x bins across track): a
+#: masked moving average of the error over each box, centred on the pixel
+SCALE_BOXES: tuple[tuple[int, int], ...] = ((4, 8), (16, 32), (48, 96))
+#: the box whose low-passed error is the headline "low-pass" number (and its slope)
+HEADLINE_BOX = (16, 32)
+SCALE_MD_NAME = "cnn_scale_split.md"
+SCALE_CSV_NAME = "cnn_scale_split.csv"
+
+
+def lowpass_waterfall(
+    values: Any, valid: Any, pings: int, bins: int, min_fraction: float = 0.25
+) -> tuple[Any, Any]:
+    """Masked moving average of one head's waterfall ``values (P, B)`` over ``pings x bins``
+    boxes centred on each pixel (``scipy.ndimage.uniform_filter``, zeros beyond the edges,
+    divided by the valid count); returns ``(low-passed (P, B), kept (P, B) bool)``: kept =
+    valid and at least ``min_fraction`` of the box valid."""
+    import numpy as np
+    from scipy.ndimage import uniform_filter
+
+    v = np.asarray(values, dtype=np.float64)
+    m = np.asarray(valid, dtype=bool) & np.isfinite(v)
+    if v.ndim != 2 or m.shape != v.shape:
+        raise ValueError(
+            f"values, valid: expected two (P, B) arrays of one shape, found {v.shape}, {m.shape}"
+        )
+    if not (isinstance(pings, int) and isinstance(bins, int) and pings >= 1 and bins >= 1):
+        raise ValueError(f"box: expected positive integers pings x bins, found {pings} x {bins}")
+    size = (pings, bins)
+    total = uniform_filter(np.where(m, v, 0.0), size=size, mode="constant")
+    count = uniform_filter(m.astype(np.float64), size=size, mode="constant")
+    out = total / np.maximum(count, 1e-12)
+    keep = m & (count >= min_fraction)
+    return np.where(keep, out, np.nan), keep
+
+
+def _slope(pred: Any, truth: Any) -> float:
+    """Least-squares slope of ``pred`` on ``truth`` (1: no shrinkage, < 1: shrunk slopes)."""
+    import numpy as np
+
+    t = truth - truth.mean()
+    den = float(np.sum(t * t))
+    return float(np.sum(t * (pred - pred.mean())) / den) if den > 0 else math.nan
+
+
+def scale_split(
+    heads: Sequence[tuple[Any, Any, Any]],
+    boxes: Sequence[tuple[int, int]] = SCALE_BOXES,
+) -> dict[str, float]:
+    """The n_lat error of a data set split by spatial scale.
+
+    ``heads``: ``(pred (P, B), truth (P, B), valid (P, B) bool)`` per line and side (whole
+    stitched waterfalls: the filters need more than a window). Returns:
+
+    * ``mae``: pixel MAE; ``lp{p}x{b}_mae``: MAE of the error low-passed over each box of
+      ``boxes`` (:func:`lowpass_waterfall`), over the kept pixels -- the error correlated
+      over that many pings and bins, the part a map integrates; ``lp{p}x{b}_share``: that
+      over ``mae``;
+    * ``line_side_bias``: the pixel-weighted mean of |mean error| per (line, side);
+    * ``slope``: least-squares slope of prediction on truth per pixel; ``lp_slope``: the
+      same after low-passing both over :data:`HEADLINE_BOX` (below 1: shrunk slopes);
+    * ``n``: valid pixels.
+    """
+    import numpy as np
+
+    if not heads:
+        raise ValueError("heads: expected at least one (pred, truth, valid) head, found none")
+    errs, preds, truths, lp_p, lp_t = [], [], [], [], []
+    lp_errs: dict[tuple[int, int], list] = {tuple(b): [] for b in boxes}
+    bias_sum, bias_n = 0.0, 0
+    for i, (pred, truth, valid) in enumerate(heads):
+        p = np.asarray(pred, dtype=np.float64)
+        t = np.asarray(truth, dtype=np.float64)
+        m = np.asarray(valid, dtype=bool) & np.isfinite(p) & np.isfinite(t)
+        if p.shape != t.shape or p.shape != m.shape or p.ndim != 2:
+            raise ValueError(
+                f"heads[{i}]: expected pred, truth, valid of one (P, B) shape, found "
+                f"{p.shape}, {t.shape}, {m.shape}"
+            )
+        if not m.any():
+            continue
+        e = np.where(m, p - t, np.nan)
+        errs.append(e[m])
+        preds.append(p[m])
+        truths.append(t[m])
+        bias_sum += abs(float(e[m].mean())) * int(m.sum())
+        bias_n += int(m.sum())
+        for box in lp_errs:
+            lp, keep = lowpass_waterfall(e, m, *box)
+            lp_errs[box].append(lp[keep])
+        lpp, keep = lowpass_waterfall(p, m, *HEADLINE_BOX)
+        lpt, _ = lowpass_waterfall(t, m, *HEADLINE_BOX)
+        lp_p.append(lpp[keep])
+        lp_t.append(lpt[keep])
+    if not errs:
+        raise ValueError("heads: expected valid pixels, found none in any head")
+    err = np.concatenate(errs)
+    mae = float(np.abs(err).mean())
+    out: dict[str, float] = {"mae": mae}
+    for (pb, bb), parts in lp_errs.items():
+        lp = np.concatenate(parts)
+        lp_mae = float(np.abs(lp).mean()) if lp.size else math.nan
+        out[f"lp{pb}x{bb}_mae"] = lp_mae
+        out[f"lp{pb}x{bb}_share"] = lp_mae / mae if mae > 0 else math.nan
+    out["line_side_bias"] = bias_sum / bias_n
+    out["slope"] = _slope(np.concatenate(preds), np.concatenate(truths))
+    out["lp_slope"] = _slope(np.concatenate(lp_p), np.concatenate(lp_t))
+    out["n"] = float(err.size)
+    return out
+
+
+def scale_split_markdown(rows: Mapping[str, Mapping[str, float]], title: str = "") -> str:
+    """Markdown table of :func:`scale_split` rows ``{data set: split}``."""
+    if not rows:
+        raise ValueError("rows: expected at least one data set, found none")
+    keys = [k for k in next(iter(rows.values())) if k != "n"]
+    lines = [
+        f"# {title or 'CNN n_lat error split by scale'}",
+        "",
+        "lpPxB: the error low-passed by a masked moving average over P pings x B bins, centred "
+        "on each pixel (boxes at least 25% valid); share = lp MAE / pixel MAE; line_side_bias: "
+        "mean |mean error| per line and side; slope: prediction on truth (per pixel; lp_slope "
+        f"after low-passing both over {HEADLINE_BOX[0]}x{HEADLINE_BOX[1]}).",
+        "",
+        "| data set | " + " | ".join(keys) + " |",
+        "|---|" + "---:|" * len(keys),
+    ]
+    for name, row in rows.items():
+        lines.append(f"| {name} | " + " | ".join(f"{float(row[k]):.4f}" for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_scale_split(
+    rows: Mapping[str, Mapping[str, float]], out_dir: str | Path, title: str = ""
+) -> tuple[Path, Path]:
+    """Write ``cnn_scale_split.md`` and ``.csv`` (one row per data set) into ``out_dir``."""
+    markdown = scale_split_markdown(rows, title)
+    keys = list(next(iter(rows.values())))
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(("dataset", *keys))
+    for name, row in rows.items():
+        writer.writerow((name, *(repr(float(row[k])) for k in keys)))
+    out = Path(out_dir)
+    paths = (out / SCALE_MD_NAME, out / SCALE_CSV_NAME)
+    atomic_write_text(paths[0], markdown)
+    atomic_write_text(paths[1], buf.getvalue())
+    return paths
