@@ -35,6 +35,7 @@ from sss2bathy.cli._common import (
     log_config,
     setup_environment,
 )
+from sss2bathy.eval.overlap import OverlapResult
 from sss2bathy.eval.verdict import HEIGHTS_ONLY, INTERPOLATION, KFoldVerdict, kfold_verdict
 from sss2bathy.metrics.bathy import MAP_TAGS
 from sss2bathy.utils.atomic import atomic_write_text
@@ -155,6 +156,7 @@ def check_map_config(cfg: DictConfig) -> None:
     map_settings_choice(cfg)
     mosaic_placement(cfg)
     verdict_folds(cfg)
+    overlap_settings(cfg)
 
 
 def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[str]:
@@ -224,6 +226,9 @@ class MapResult:
     metrics: dict[str, float]
     has_mbes: bool
     verdict: KFoldVerdict | None = None
+    #: the leave-one-line-out overlap score (:func:`run_overlap`), or why there is none
+    overlap: OverlapResult | None = None
+    overlap_note: str | None = None
 
     @property
     def paths(self) -> dict[str, Path]:
@@ -324,9 +329,23 @@ class MapResult:
                 + (f", {int(n)} points" if n is not None else "")
                 + f": {verdict} (one draw of blocks; verdict.folds=5 for a K-fold verdict)"
             )
+        lines += self.overlap_lines()
         if self.has_mbes and self.metric("mae") is not None:
             lines.append(f"  MAE against the MBES grid: {self.metric('mae'):.3f} m")
         return lines
+
+    def overlap_lines(self) -> list[str]:
+        """The overlap score's table and verdict, or the one line saying why there is none."""
+        if self.overlap is None:
+            return [f"  off-track overlap score: {self.overlap_note}"] if self.overlap_note else []
+        v = self.overlap.verdict
+        cost = f", {v.seconds / 60:.1f} min of fits" if v.seconds is not None else ""
+        lines = [
+            f"  off-track overlap score (each fold: one line held out, the map fitted from the "
+            f"others and scored at {self.overlap.n_points} of the held-out lines' altimeter "
+            f"points inside the others' swath footprint, off their tracks){cost}:"
+        ]
+        return [*lines, *self.overlap.lines(), f"  OVERLAP {v.sentence()}"]
 
 
 def verdict_folds(cfg: Mapping[str, Any]) -> int:
@@ -431,6 +450,141 @@ def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> K
     return verdict
 
 
+def overlap_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """``verdict.overlap`` checked: ``enabled`` (true / false) and ``min_points`` (the
+    least overlap points that make a held-out line a fold, >= 1)."""
+    node = (cfg.get("verdict") or {}).get("overlap") or {}
+    enabled = node.get("enabled", False)
+    if not isinstance(enabled, bool):
+        raise ValueError(f"verdict.overlap.enabled: expected true or false, found {enabled!r}")
+    min_points = node.get("min_points", 10)
+    if isinstance(min_points, bool) or not isinstance(min_points, int) or min_points < 1:
+        raise ValueError(f"verdict.overlap.min_points: expected a count >= 1, found {min_points!r}")
+    return {"enabled": enabled, "min_points": min_points}
+
+
+def _map_grid(fold_dir: Path) -> tuple[Any, np.ndarray]:
+    """A finished fit's ``map.npz``: the map (every cell) and its coverage."""
+    from sss2bathy.survey import BathyGrid
+
+    with np.load(Path(fold_dir) / "map.npz", allow_pickle=False) as saved:
+        grid = BathyGrid(
+            saved["heights"].astype(np.float32),
+            float(saved["x0"]),
+            float(saved["y0"]),
+            float(saved["cell_size"]),
+        )
+        coverage = np.asarray(saved["coverage"], bool)
+    return grid, coverage
+
+
+def run_overlap(
+    cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]
+) -> tuple[OverlapResult | None, str | None]:
+    """The leave-one-line-out overlap score (:mod:`sss2bathy.eval.overlap`) of a map config:
+    ``(result, None)``, or ``(None, why not)`` (off, one line, no overlap, heights-only).
+
+    Each line with ``verdict.overlap.min_points`` or more altimeter points inside the other
+    lines' swath footprint (:func:`~sss2bathy.eval.overlap.offtrack_counts`) is held out in
+    turn: the map's method and ``siren_heights_only`` are fitted from the other lines alone
+    (sidescan and altimeter; a copy of the survey, ``<name>_overlap``, whose splits
+    ``overlap_fit<i>`` / ``overlap_held<i>`` name them) into
+    ``run_dir/overlap/<method>/<line>/``, and scored at the held-out line's overlap points
+    with the plane through the other lines' altimeter beside them. Costs 2 fits per
+    held-out line. The result (or the reason) goes to ``run_dir/overlap.json``.
+    """
+    import time
+
+    from sss2bathy.cli.train import fit
+    from sss2bathy.data.sources import load_survey
+    from sss2bathy.eval.overlap import (
+        offtrack_counts,
+        overlap_unavailable,
+        overlap_verdict,
+        score_overlap_fold,
+        unscored_reason,
+    )
+    from sss2bathy.survey import Survey
+
+    settings = overlap_settings(cfg)
+    if not settings["enabled"]:
+        return None, None
+    subject = map_experiment(cfg)
+    out_json = Path(run_dir) / "overlap.json"
+    reason: str | None = None
+    if subject == HEIGHTS_ONLY:
+        reason = "not computed: method siren_heights_only has no sidescan to judge"
+    else:
+        base = compose_train_config(cfg, run_dir, choices)
+        survey, _ = load_survey(base.data.survey, base.paths.data_dir)
+        lines = survey.split_lines(str(base.data.sidescan_split))
+        names = [ln.name for ln in lines]
+        counts = offtrack_counts(lines, float(base.model.get("eval_cell_m") or 0.5))
+        reason = overlap_unavailable(names, counts.tolist(), settings["min_points"])
+    if reason is not None:
+        log.info("verdict.overlap: %s", reason)
+        atomic_write_text(out_json, json.dumps({"computable": False, "reason": reason}, indent=2))
+        return None, reason
+    held = [i for i, c in enumerate(counts) if c >= settings["min_points"]]
+    survey_cfg = OmegaConf.to_container(base.data.survey, resolve=True)
+    splits = dict(survey_cfg.get("splits") or {"test": list(names)})
+    for i in held:
+        splits[f"overlap_fit{i}"] = [n for n in names if n != names[i]]
+        splits[f"overlap_held{i}"] = [names[i]]
+    survey_cfg.update(splits=splits, name=f"{survey_cfg['name']}_overlap")
+    log.info(
+        "verdict.overlap: holding out %d of %d lines in turn (%s overlap points), 2 fits each",
+        len(held), len(names), ", ".join(f"{names[i]}: {int(counts[i])}" for i in held),
+    )  # fmt: skip
+    methods = [subject, HEIGHTS_ONLY]
+    folds = []
+    start = time.monotonic()
+    for i in held:
+        maps, coverage = {}, None
+        for method in methods:
+            fold_dir = Path(run_dir) / "overlap" / method / names[i]
+            train_cfg = compose_train_config(
+                fold_config(cfg, method), fold_dir, {**choices, "logger": "none"}
+            )
+            with open_dict(train_cfg):
+                train_cfg.data.survey = survey_cfg
+                train_cfg.data.sidescan_split = f"overlap_fit{i}"
+                train_cfg.data.altimeter_split = f"overlap_fit{i}"
+                train_cfg.data.holdout.fraction = 0.0
+                train_cfg.data.holdout.folds = 0
+            t0 = time.monotonic()
+            fit(train_cfg, fold_dir)
+            maps[method], cov = _map_grid(fold_dir)
+            coverage = cov if method == subject else coverage
+            log.info(
+                "verdict.overlap: %s held out, %s fitted from the other lines, %.0f s",
+                names[i], method, time.monotonic() - t0,
+            )  # fmt: skip
+        copy = Survey.load(Path(str(base.paths.data_dir)) / str(survey_cfg["name"]))
+        fold = score_overlap_fold(
+            names[i],
+            copy.altimeter(f"overlap_held{i}").xyz,
+            copy.altimeter(f"overlap_fit{i}").xyz,
+            coverage,
+            maps,
+            maps[subject],
+            settings["min_points"],
+        )
+        log.info(
+            "verdict.overlap: %s: %d overlap points, MAE %s",
+            fold.line, fold.n_points, ", ".join(f"{k} {v:.3f} m" for k, v in fold.mae.items()),
+        )  # fmt: skip
+        folds.append(fold)
+    reason = unscored_reason(folds, settings["min_points"])
+    if reason is not None:
+        log.info("verdict.overlap: %s", reason)
+        atomic_write_text(out_json, json.dumps({"computable": False, "reason": reason}, indent=2))
+        return None, reason
+    result = overlap_verdict(folds, subject, seconds=time.monotonic() - start)
+    atomic_write_text(out_json, json.dumps(result.to_dict(), indent=2, sort_keys=True))
+    return result, None
+
+
 def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapResult:
     """Import, fit and write the map of a ``conf/map.yaml`` config into ``run_dir``
     (``choices``: its group choices, see :func:`train_overrides`). With ``verdict.folds``
@@ -439,6 +593,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     from sss2bathy.cli.train import fit
 
     verdict = run_verdict(cfg, run_dir, choices)
+    overlap, overlap_note = run_overlap(cfg, run_dir, choices)
     train_cfg = compose_train_config(cfg, run_dir, choices)
     if verdict is not None:
         with open_dict(train_cfg):
@@ -455,6 +610,9 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     if verdict is not None:
         metrics.update(verdict.metrics())
         add_to_metrics_json(Path(run_dir) / "metrics.json", verdict.metrics())
+    if overlap is not None:
+        metrics.update(overlap.metrics("verdict/overlap/"))
+        add_to_metrics_json(Path(run_dir) / "metrics.json", overlap.metrics("verdict/overlap/"))
     write_map_mosaic(cfg, train_cfg, Path(run_dir))
     return MapResult(
         Path(run_dir),
@@ -463,6 +621,8 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
         metrics,
         result.has_mbes,
         verdict,
+        overlap,
+        overlap_note,
     )
 
 

@@ -30,8 +30,12 @@ import numpy as np
 
 INTERPOLATION = "interpolation"
 HEIGHTS_ONLY = "siren_heights_only"
+PLANE = "plane"
+#: what a :class:`KFoldVerdict`'s folds hold out, unless it says otherwise
+ALTIMETER_BLOCKS = "held-out altimeter blocks"
 LABELS = {
     INTERPOLATION: "along-track interpolation",
+    PLANE: "plane through the fitted altimeter points",
     HEIGHTS_ONLY: "heights only (SIREN, no sidescan)",
     "siren_lambert": "SIREN-Lambert (sidescan)",
     "siren_cnn_n2d": "SIREN-CNN-N2d (sidescan)",
@@ -159,6 +163,8 @@ class KFoldVerdict:
         seconds: wall time of the fold fits (s), or None.
         imaged_share: mean share of the held-out points inside the sonar's footprint (0 on
             single lines: the nadir gap), or None.
+        held_out: what the folds hold out, as the sentence says it (e.g.
+            :data:`ALTIMETER_BLOCKS`).
     """
 
     subject: str
@@ -168,6 +174,7 @@ class KFoldVerdict:
     block_pings: float | None = None
     seconds: float | None = None
     imaged_share: float | None = None
+    held_out: str = ALTIMETER_BLOCKS
 
     @property
     def folds(self) -> int:
@@ -196,21 +203,21 @@ class KFoldVerdict:
         others = lambda cs: " and ".join(LABELS.get(c.b, c.b) for c in cs)  # noqa: E731
         if self.outcome == "helped":
             return (
-                f"VERDICT: {subject} beats {others(self.comparisons)} on held-out altimeter "
-                f"blocks in {self.folds} folds: the sidescan helped."
+                f"VERDICT: {subject} beats {others(self.comparisons)} on {self.held_out} in "
+                f"{self.folds} folds: the sidescan helped."
             )
         if self.outcome == "did not help":
             won = [c for c in self.comparisons if c.winner == self.subject]
             also = f" (though it beats {others(won)})" if won else ""
             return (
-                f"VERDICT: {others(lost)} beats {subject} on held-out altimeter blocks in "
+                f"VERDICT: {others(lost)} beats {subject} on {self.held_out} in "
                 f"{self.folds} folds: the sidescan did NOT help{also}."
             )
         best = LABELS.get(self.best, self.best) if self.best else "none"
         return (
-            f"VERDICT: inconclusive: over {self.folds} folds {subject} is neither better nor "
-            f"worse than {others(open_)} beyond the folds' spread (the 95 % interval of the "
-            f"paired differences contains 0); lowest mean MAE: {best}."
+            f"VERDICT: inconclusive: over {self.folds} folds of {self.held_out} {subject} is "
+            f"neither better nor worse than {others(open_)} beyond the folds' spread (the 95 % "
+            f"interval of the paired differences contains 0); lowest mean MAE: {best}."
         )
 
     def table(self) -> list[str]:
@@ -229,6 +236,7 @@ class KFoldVerdict:
         """Plain values for ``verdict.json`` / ``metrics.json``."""
         return {
             "subject": self.subject,
+            "held_out": self.held_out,
             "folds": self.folds,
             "block_m": self.block_m,
             "block_pings": self.block_pings,
@@ -287,9 +295,11 @@ def kfold_verdict(
     block_pings: float | None = None,
     seconds: float | None = None,
     imaged_share: float | None = None,
+    held_out: str = ALTIMETER_BLOCKS,
 ) -> KFoldVerdict:
     """The verdict on ``subject`` against every other method of ``scores`` (module
-    docstring); ``scores`` as :class:`MethodScores` or ``{name: per-fold MAE}``."""
+    docstring); ``scores`` as :class:`MethodScores` or ``{name: per-fold MAE}``;
+    ``held_out`` names what the folds hold out (the sentence's words)."""
     if isinstance(scores, Mapping):
         scores = [MethodScores(str(k), tuple(float(v) for v in vs)) for k, vs in scores.items()]
     scores = list(scores)
@@ -305,13 +315,22 @@ def kfold_verdict(
     ordered = [first, *(s for s in scores if s.name != subject)]
     comparisons = tuple(paired_comparison(first, s) for s in ordered[1:])
     return KFoldVerdict(
-        subject, tuple(ordered), comparisons, block_m, block_pings, seconds, imaged_share
+        subject,
+        tuple(ordered),
+        comparisons,
+        block_m,
+        block_pings,
+        seconds,
+        imaged_share,
+        held_out,
     )
 
 
 __all__ = [
+    "ALTIMETER_BLOCKS",
     "HEIGHTS_ONLY",
     "INTERPOLATION",
+    "PLANE",
     "Comparison",
     "KFoldVerdict",
     "MethodScores",
