@@ -233,6 +233,7 @@ def test_sss2bathy_map_on_an_xtf_survey_without_mbes(tmp_path, tiny_xtf):
             "survey.n_bins=null",
             "holdout.block_pings=10",
             "verdict.folds=0",
+            "verdict.overlap.enabled=false",  # its own test: tests/eval/test_overlap.py
             f"hydra.run.dir={run}",
             'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
             *_common(tmp_path),
