@@ -12,8 +12,7 @@ ARGS ?=
 SCALE ?= demo
 export SSS2BATHY_ROOT := $(CURDIR)
 
-.PHONY: help install test test-slow lint format demo prepare cnn siren-direct-fit siren-gt-n2d \
-	siren-heights-only siren-cnn-n2d siren-lambert siren-lambert-all map d2 d3 report paper \
+.PHONY: help install test test-slow lint format demo prepare map report results paper \
 	sweep-example sweep-siren bench schedule-study tb clean
 
 help: ## Show this help (target names in colour only on a terminal)
@@ -56,30 +55,22 @@ prepare: install ## Generate + drape the synthetic surveys (cached)
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_d2 scale=$(SCALE) $(ARGS)
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_d3 scale=$(SCALE) $(ARGS)
 
-cnn: install ## Paper experiment: normal CNN (train d1, test d1 test lines + d2)
-	$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
-
-siren-direct-fit: install ## Paper experiment: SIREN fitted to the MBES grid directly
-	$(BIN)/sss2bathy-train experiment=siren_direct_fit scale=$(SCALE) $(ARGS)
-
-siren-gt-n2d: install ## Paper experiment: SIREN from draped MBES normals + altimeter
-	$(BIN)/sss2bathy-train experiment=siren_gt_n2d scale=$(SCALE) $(ARGS)
-
-siren-heights-only: install ## Ablation: SIREN from the altimeter heights alone (what the sidescan must beat)
-	$(BIN)/sss2bathy-train experiment=siren_heights_only scale=$(SCALE) $(ARGS)
-
-siren-cnn-n2d: install ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
-	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
-		$(BIN)/sss2bathy-train experiment=siren_cnn_n2d scale=$(SCALE) $(ARGS); \
-	else \
-		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,siren_cnn_n2d] $(ARGS); \
-	fi
-
-siren-lambert: install ## Paper experiment: Lambertian baseline, 12 test lines
-	$(BIN)/sss2bathy-train experiment=siren_lambert scale=$(SCALE) $(ARGS)
-
-siren-lambert-all: install ## Paper experiment: Lambertian baseline, all lines of sidescan
-	$(BIN)/sss2bathy-train experiment=siren_lambert_all scale=$(SCALE) $(ARGS)
+# The paper's experiments, one make target each. conf/experiment/<name>.yaml's `pipeline` key
+# names an experiment's target; the pipeline runs the target's experiments, training a CNN
+# first when one reads a CNN and no run of this scale has one.
+EXPERIMENT_TARGETS := $(sort $(shell sed -n 's/^  make: *//p' conf/experiment/*.yaml))
+.PHONY: $(EXPERIMENT_TARGETS)
+$(EXPERIMENT_TARGETS): install
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) make=$@ $(ARGS)
+cnn: ## Paper experiment: normal CNN (train d1; test d1 test lines, d2, d3, site2)
+siren-direct-fit: ## Paper experiment: SIREN fitted to the MBES grid directly
+siren-heights-only: ## Ablation: SIREN from the altimeter heights alone (what the sidescan must beat)
+siren-gt-n2d: ## Paper experiment: SIREN from draped MBES normals + altimeter
+siren-cnn-n2d: ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
+siren-lambert-all: ## Paper experiment: Lambertian baseline, all lines of sidescan
+siren-lambert: ## Paper experiment: Lambertian baseline, 12 test lines
+d2: ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
+d3: ## Stress site: another sonar (CNN-N2d and Lambert on synthetic_d3; trains a CNN if none)
 
 map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> map.tif, map.png, metrics.json
 	@test -n "$(XTF)" || { echo "make map: expected XTF=<folder, file or glob of .xtf files>, found none"; exit 2; }
@@ -89,22 +80,11 @@ map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> ma
 xtf-study: install ## Generated AUV XTF surveys without MBES: held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
 	OMP_NUM_THREADS=1 $(BIN)/python -m studies.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
 
-d2: install ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
-	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
-		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
-	else \
-		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[cnn,d2_siren_cnn_n2d,d2_siren_lambert] $(ARGS); \
-	fi
-
-d3: install ## Stress site: another sonar (CNN-N2d and Lambert on synthetic_d3; trains a CNN if none)
-	@if ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1; then \
-		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[prepare_d3,d3_siren_cnn_n2d,d3_siren_lambert] $(ARGS); \
-	else \
-		$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) stages=[prepare_d3,cnn,d3_siren_cnn_n2d,d3_siren_lambert] $(ARGS); \
-	fi
-
 report: install ## Gather the latest run of each experiment into outputs/report/
 	$(BIN)/sss2bathy-report $(ARGS)
+
+results: install ## The report, then its tables into docs/results.md and the README's results (after make demo)
+	$(BIN)/sss2bathy-report --publish $(ARGS)
 
 paper: install ## Every experiment at scale=paper (GPU), then the report
 	$(BIN)/python -m sss2bathy.cli.pipeline scale=paper $(ARGS)
@@ -119,11 +99,12 @@ sweep-siren: install ## Optuna search of a SIREN fit (w_H, lr, omega0, lr decay)
 bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
 	$(BIN)/python -m benchmarks $(ARGS)
 
+# a CNN of this scale for the studies that read one: trained only if none exists
+CNN_IF_NONE = $(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) needs=[cnn] $(ARGS)
 STUDY := outputs/study/$(SCALE)
 STUDY_TRAIN := $(BIN)/sss2bathy-train experiment=siren_cnn_n2d scale=$(SCALE) model.log_images=false
 schedule-study: install ## SIREN-CNN-N2d: paper schedule vs fast schedule, map MAE over time (paper run: hours on a CPU)
-	@ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1 || \
-		$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
+	$(CNN_IF_NONE)
 	$(STUDY_TRAIN) siren_schedule=fast scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/fast $(ARGS)
 	$(STUDY_TRAIN) scale.siren.eval_every_n_epochs=1 hydra.run.dir=$(STUDY)/scale_default $(ARGS)
 	$(STUDY_TRAIN) siren_schedule=paper scale.siren.eval_every_n_epochs=25 hydra.run.dir=$(STUDY)/paper $(ARGS)
@@ -148,8 +129,7 @@ VALSITE := outputs/valsite_study/$(SCALE)
 VALSITE_TRAIN := $(BIN)/sss2bathy-train data/survey=synthetic_d1_valsite scale=$(SCALE) torch_threads=1 model.log_images=false
 VALSITE_OLD_LR := scale.siren.lr=3.0e-3 scale.siren.gamma=0.8
 valsite-study: install ## SIREN settings on the validation site (d1's recipe, seed 7; not a test set): GT-N2d, CNN-N2d, Lambert at the scale's lr and 3e-3, CNN-N2d with line offsets; one fit at a time (~9 min demo) -> outputs/valsite_study/
-	@ls outputs/runs/cnn/*/checkpoints/last.ckpt >/dev/null 2>&1 || \
-		$(BIN)/sss2bathy-train experiment=cnn scale=$(SCALE) $(ARGS)
+	$(CNN_IF_NONE)
 	rm -rf $(VALSITE)
 	for e in gt_n2d cnn_n2d lambert; do \
 		$(VALSITE_TRAIN) experiment=siren_$$e hydra.run.dir=$(VALSITE)/$${e}_scale_lr $(ARGS) || exit 1; \

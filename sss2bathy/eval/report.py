@@ -16,6 +16,12 @@ and ``run_info.json``) and writes ``outputs/report/``:
 * ``maps_d1.png``, ``maps_d2.png`` — bathymetry and HSV gradient, MBES beside every variant;
 * ``zoom_d1_<k>.png`` — the roughest areas, gradients of MBES / GT-N2d / CNN-N2d / Lambert
   and the sidescan mosaic there.
+* ``results.json``, ``results.md`` — the tables as data and as the results page
+  (:mod:`sss2bathy.eval.results`; ``sss2bathy-report --publish`` puts them in ``docs/`` and
+  the README).
+
+Which experiments are the rows of which table, under which name and in which order, is the
+``pipeline`` key of their files in ``conf/experiment/`` (:mod:`sss2bathy.utils.experiments`).
 
 All SIREN variants of one survey are scored on the **same cells**: the intersection of the
 areas their runs scored (each run scores cells near the sonar tracks it used), so a variant
@@ -25,8 +31,6 @@ paper's numbers beside ours, labelled as measured on the paper's own (real) data
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import os
@@ -42,27 +46,24 @@ from sss2bathy.eval.cnn_table import (
     constant_rows_from_metrics,
     table_rows_from_metrics,
 )
-from sss2bathy.eval.paper_numbers import PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
+from sss2bathy.eval.results import (
+    CNN_KEY,
+    RESULTS_JSON,
+    RESULTS_MD,
+    SIREN_TABLES,
+    results_header,
+    results_markdown,
+    results_table,
+    siren_table,
+)
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
+from sss2bathy.utils.experiments import Experiment, pipeline_experiments
 
 log = logging.getLogger("sss2bathy.report")
 
-# (task_name, label in the tables) — the order of the paper's tables and figure columns
-D1_VARIANTS = [
-    ("siren_direct_fit", "SIREN-Direct-Fit"),
-    ("siren_heights_only", "SIREN-Heights-only"),
-    ("siren_gt_n2d", "SIREN-GT-N2d"),
-    ("siren_cnn_n2d", "SIREN-CNN-N2d"),
-    ("siren_lambert_all", "SIREN-Lambert-all"),
-    ("siren_lambert", "SIREN-Lambert"),
-]
-D2_VARIANTS = [("d2_siren_cnn_n2d", "SIREN-CNN-N2d"), ("d2_siren_lambert", "SIREN-Lambert")]
-# the different-sonar stress site (no counterpart in the paper)
-D3_VARIANTS = [("d3_siren_cnn_n2d", "SIREN-CNN-N2d"), ("d3_siren_lambert", "SIREN-Lambert")]
 ZOOM_LABELS = ("SIREN-GT-N2d", "SIREN-CNN-N2d", "SIREN-Lambert")
-OURS = "ours (synthetic survey)"
 
 
 @dataclass
@@ -82,6 +83,11 @@ class MapRun:
     run: RunRecord
     heights: np.ndarray
     region: np.ndarray
+
+
+def table_variants(table: str, experiments: list[Experiment]) -> list[tuple[str, str]]:
+    """``(experiment, label)`` of the rows of one report table, in stage order."""
+    return [(e.name, e.label) for e in experiments if e.table == table]
 
 
 def find_latest_runs(outputs_dir: str | Path) -> dict[str, RunRecord]:
@@ -163,35 +169,6 @@ def score_maps(maps: list[MapRun], truth: BathyGrid) -> tuple[dict[str, dict], n
             common &= m.region
     rows = {m.label: bathy_metrics(m.heights, truth.heights, truth.cell_size, common) for m in maps}
     return rows, common
-
-
-def siren_table(rows: dict[str, dict], paper: dict[str, dict], title: str) -> tuple[str, str]:
-    """Markdown and CSV of a SIREN table (MAE, STD, gradient CS), ours then the paper's."""
-    md = [
-        f"# {title}",
-        "",
-        "MAE and STD of the signed height error (m), mean cosine similarity of the gradient "
-        "maps (higher is better), on the cells every variant scored. "
-        f"Rows labelled *{PAPER_LABEL}* are the published numbers on the paper's real data.",
-        "",
-        "| source | variant | MAE (m) | STD (m) | gradient CS | cells |",
-        "|---|---|---:|---:|---:|---:|",
-    ]
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(("source", "variant", "mae", "std", "grad_cs", "n_cells"))
-    for label, m in rows.items():
-        md.append(
-            f"| {OURS} | {label} | {m['mae']:.3f} | {m['std']:.3f} | {m['grad_cs']:.3f} "
-            f"| {m['n_cells']} |"
-        )
-        writer.writerow((OURS, label, m["mae"], m["std"], m["grad_cs"], m["n_cells"]))
-    for label, m in paper.items():
-        md.append(
-            f"| {PAPER_LABEL} | {label} | {m['mae']:.3f} | {m['std']:.3f} | {m['grad_cs']:.3f} | |"
-        )
-        writer.writerow((PAPER_LABEL, label, m["mae"], m["std"], m["grad_cs"], ""))
-    return "\n".join(md) + "\n", buf.getvalue()
 
 
 def _save(fig: Any, path: Path) -> Path:
@@ -382,16 +359,18 @@ def _survey_section(
     title: str,
     out: Path,
     zoom: bool,
-) -> list[str]:
+) -> tuple[list[str], dict[str, Any] | None]:
+    """The section of one SIREN table (its files written into ``out``) and the table's
+    entry of ``results.json`` (None when no run left a map)."""
     present = [(task, label) for task, label in variants if task in runs]
     if not present:
-        return [f"## {title}", "", "No finished run of these experiments was found.", ""]
+        return [f"## {title}", "", "No finished run of these experiments was found.", ""], None
     truth = mbes_grid(runs[present[0][0]])
     if truth is None:
-        return [f"## {title}", "", "The MBES grid of these runs was not found.", ""]
+        return [f"## {title}", "", "The MBES grid of these runs was not found.", ""], None
     maps = [m for t, lbl in present if (m := load_map_run(lbl, runs[t], truth)) is not None]
     if not maps:
-        return [f"## {title}", "", "None of these runs left a map.", ""]
+        return [f"## {title}", "", "None of these runs left a map.", ""], None
     survey = runs[present[0][0]].info.get("survey_name") or key
     rows, common = score_maps(maps, truth)
     md, table_csv = siren_table(rows, paper, title)
@@ -424,19 +403,25 @@ def _survey_section(
             _panels(truth, chosen, common, out / name, window, mosaic, zoom_title, note)
             lines += [f"![{survey}: zoom on the roughest area {k + 1}]({name})", ""]
     lines += ["Runs:", ""] + [_run_links(m.label, m.run, out) for m in maps] + [""]
-    return lines
+    return lines, results_table(title, survey, rows, [m.run for m in maps])
 
 
-def stage_times_section(outputs_dir: Path, runs: dict[str, RunRecord]) -> list[str]:
-    """The pipeline's stage wall times (``report/stage_times.json``) as a Markdown table,
-    with each training stage's run; none when the pipeline did not run."""
+def read_stage_times(outputs_dir: Path) -> dict[str, Any] | None:
+    """The pipeline's ``report/stage_times.json`` (None when the pipeline did not run)."""
     times = outputs_dir / "report" / "stage_times.json"
     if not times.is_file():
-        return []
+        return None
     try:
-        stage = json.loads(times.read_text())
+        return json.loads(times.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         log.warning("stage times unreadable (%s): %s", times, exc)
+        return None
+
+
+def stage_times_section(stage: dict[str, Any] | None, runs: dict[str, RunRecord]) -> list[str]:
+    """The pipeline's stage wall times as a Markdown table, with each training stage's run;
+    none when the pipeline did not run."""
+    if not stage:
         return []
     lines = [
         "## Stage times",
@@ -452,13 +437,19 @@ def stage_times_section(outputs_dir: Path, runs: dict[str, RunRecord]) -> list[s
     return lines + [""]
 
 
-def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> Path:
-    """Write the report of the latest runs under ``outputs_dir``: ``index.md`` and the same
-    as a self-contained web page ``index.html`` (figures embedded); return ``index.md``."""
+def build_report(
+    outputs_dir: str | Path, out_dir: str | Path | None = None, conf_dir: str | Path | None = None
+) -> Path:
+    """Write the report of the latest runs under ``outputs_dir``: ``index.md``, the same as
+    a self-contained web page ``index.html`` (figures embedded), and the tables as data
+    (``results.json``) and as the results page (``results.md``,
+    :func:`sss2bathy.eval.results.results_markdown`); return ``index.md``. The tables' rows
+    are the experiments of ``conf_dir/experiment`` (default: the project's ``conf/``)."""
     outputs_dir = Path(outputs_dir)
     out = Path(out_dir) if out_dir is not None else outputs_dir / "report"
     out.mkdir(parents=True, exist_ok=True)
     runs = find_latest_runs(outputs_dir)
+    experiments = pipeline_experiments(conf_dir)
     index = [
         "# sss2bathy report",
         "",
@@ -467,8 +458,10 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
         "real data, so they orient, they do not compare like for like.",
         "",
     ]
-
-    cnn = runs.get("cnn")
+    results: dict[str, Any] = {"cnn": None, "siren": {}}
+    used: list[RunRecord] = []
+    cnn_task = next((task for task, _ in table_variants(CNN_KEY, experiments)), None)
+    cnn = runs.get(cnn_task) if cnn_task else None
     rows = table_rows_from_metrics(cnn.metrics) if cnn else {}
     # the constant (training-mean) prediction of each test set, when the run scored one
     const = constant_rows_from_metrics(cnn.metrics) if cnn else {}
@@ -479,18 +472,22 @@ def build_report(outputs_dir: str | Path, out_dir: str | Path | None = None) -> 
         atomic_write_text(out / "table_cnn.csv", cnn_table_csv(rows, const))
         index += [cnn_table_markdown(rows, const).split("\n", 2)[2], "Run:", ""]
         index += [_run_links("CNN", cnn, out), ""]
+        results["cnn"] = {"rows": rows, "constant": const}
+        used.append(cnn)
     else:
         index += ["No finished CNN run with test metrics was found.", ""]
-    index += _survey_section(
-        D1_VARIANTS, runs, SIREN_D1_TABLE, "d1", "SIREN on synthetic_d1 (Table 3)", out, True
-    )
-    index += _survey_section(
-        D2_VARIANTS, runs, SIREN_D2_TABLE, "d2", "SIREN on synthetic_d2 (Table 4)", out, False
-    )
-    index += _survey_section(
-        D3_VARIANTS, runs, {}, "d3", "SIREN on synthetic_d3 (another sonar)", out, False
-    )
-    index += stage_times_section(outputs_dir, runs)
+    for key, (title, paper, zoom) in SIREN_TABLES.items():
+        variants = table_variants(key, experiments)
+        lines, table = _survey_section(variants, runs, paper, key, title, out, zoom)
+        index += lines
+        if table is not None:
+            results["siren"][key] = table
+            used += [runs[task] for task, _ in variants if task in runs]
+    stage = read_stage_times(outputs_dir)
+    index += stage_times_section(stage, runs)
+    results = {**results_header(used, stage), **results, "stage_times": stage}
+    atomic_write_text(out / RESULTS_JSON, json.dumps(results, indent=2) + "\n")
+    atomic_write_text(out / RESULTS_MD, results_markdown(results))
     path = out / "index.md"
     text = "\n".join(index)
     atomic_write_text(path, text)

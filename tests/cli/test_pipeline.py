@@ -1,7 +1,9 @@
-"""``python -m sss2bathy.cli.pipeline``: --help runs nothing; arguments; the Makefile's help."""
+"""``python -m sss2bathy.cli.pipeline``: --help runs nothing; arguments; what runs when a CNN
+exists or not; the stage times; the Makefile's help."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -10,9 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from sss2bathy.cli.pipeline import STAGE_NAMES, parse_args
+from sss2bathy.cli.pipeline import Args, parse_args, plan_stages, record_time, select
+from sss2bathy.utils.experiments import pipeline_experiments
 
 ROOT = Path(__file__).resolve().parents[2]
+STAGE_NAMES = [s.name for s in plan_stages(pipeline_experiments(ROOT / "conf"))]
 
 
 @pytest.mark.parametrize("flag", ["--help", "-h"])
@@ -35,10 +39,66 @@ def test_help_prints_usage_and_runs_nothing(tmp_path, flag):
 
 
 def test_parse_args_splits_scale_stages_and_overrides():
-    scale, stages, rest = parse_args(["scale=tiny", "stages=[cnn, report]", "seed=2"])
-    assert (scale, stages, rest) == ("tiny", ["cnn", "report"], ["seed=2"])
+    args = parse_args(["scale=tiny", "stages=[cnn, report]", "seed=2", "make=d2", "needs=[cnn]"])
+    assert args == Args("tiny", ["cnn", "report"], "d2", ["cnn"], ["seed=2"])
     with pytest.raises(SystemExit, match="unknown stage"):
-        parse_args(["stages=[cnn,nope]"])
+        select(parse_args(["stages=[cnn,nope]"]), Path("/nonexistent"))
+    with pytest.raises(SystemExit, match="make: expected one of"):
+        select(parse_args(["make=nope"]), Path("/nonexistent"))
+
+
+def _cnn_run(outputs: Path, scale: str) -> None:
+    run = outputs / "runs" / "cnn" / "2026-01-01_00-00-00"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text(f"scale:\n  name: {scale}\n")
+
+
+def _names(argv: list[str], outputs: Path) -> list[str]:
+    return [s.name for s in select(parse_args(argv), outputs)]
+
+
+def test_a_cnn_is_trained_first_only_when_none_of_this_scale_exists(tmp_path):
+    prepare = ["prepare_d1", "prepare_d2", "prepare_d3", "prepare_d1_site2"]
+    assert _names(["scale=demo", "make=siren-cnn-n2d"], tmp_path) == [
+        *prepare,
+        "cnn",
+        "siren_cnn_n2d",
+    ]
+    assert _names(["scale=demo", "make=d3"], tmp_path) == [
+        *prepare,
+        "cnn",
+        "d3_siren_cnn_n2d",
+        "d3_siren_lambert",
+    ]
+    _cnn_run(tmp_path, "tiny")  # a run of another scale does not count
+    assert "cnn" in _names(["scale=demo", "needs=[cnn]"], tmp_path)
+    _cnn_run(tmp_path / "demo", "demo")
+    outputs = tmp_path / "demo"
+    assert _names(["scale=demo", "make=siren-cnn-n2d"], outputs) == ["siren_cnn_n2d"]
+    assert _names(["scale=demo", "make=d3"], outputs) == [
+        "prepare_d3",
+        "d3_siren_cnn_n2d",
+        "d3_siren_lambert",
+    ]
+    assert _names(["scale=demo", "needs=[cnn]"], outputs) == []
+    # chosen explicitly, it runs anyway; the whole pipeline runs every stage
+    assert "cnn" in _names(["scale=demo", "stages=[cnn]"], outputs)
+    assert _names(["scale=demo"], outputs) == STAGE_NAMES
+
+
+def test_stage_times_keep_the_latest_time_of_each_stage(tmp_path):
+    path = tmp_path / "stage_times.json"
+    record_time(path, "demo", "cnn", 100.04)
+    record_time(path, "demo", "siren_gt_n2d", 20.0)
+    record_time(path, "demo", "cnn", 90.0)
+    assert json.loads(path.read_text()) == {
+        "scale": "demo",
+        "seconds": {"cnn": 90.0, "siren_gt_n2d": 20.0, "total": 110.0},
+    }
+    record_time(path, "tiny", "cnn", 5.0)  # another scale starts afresh
+    assert json.loads(path.read_text())["seconds"] == {"cnn": 5.0, "total": 5.0}
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")

@@ -165,3 +165,26 @@ def test_index_html_loads_in_headless_chromium_with_every_figure_decoded(outputs
     assert check["decoded"] == n_figures, check  # every <img> decodes
     assert min(check["widths"]) > 300  # real figures, not broken-image icons
     assert check["tables"] == 3
+
+
+def test_results_json_holds_the_tables_of_the_runs_and_renders_the_results_page(outputs):
+    import csv
+
+    from sss2bathy.eval.results import readme_results, results_markdown
+
+    report = outputs / "report"
+    results = json.loads((report / "results.json").read_text())
+    assert results["scale"] == "tiny"  # from the stage times: these run records name none
+    assert results["commits"] == ["unknown"] and "cores" in results["machine"]
+    assert set(results["cnn"]["rows"]) == {"synthetic_d1_tiny", "synthetic_d2_tiny"}
+    table = results["siren"]["d1"]
+    # the rows, in the experiments' order and names, are those of the report's own table
+    assert list(table["rows"]) == ["SIREN-GT-N2d", "SIREN-CNN-N2d", "SIREN-Lambert"]
+    with open(report / "table_siren_d1.csv") as fh:
+        ours = [r for r in csv.DictReader(fh) if r["source"].startswith("ours")]
+    for row in ours:
+        assert float(row["mae"]) == pytest.approx(table["rows"][row["variant"]]["mae"])
+        assert int(row["n_cells"]) == table["rows"][row["variant"]]["n_cells"]
+    assert table["runs"] == ["2026-01-01_00-00-00"] * 3
+    assert (report / "results.md").read_text() == results_markdown(results)
+    assert "| SIREN-CNN-N2d |" in readme_results(results)
