@@ -54,7 +54,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("callbacks",),
     ("modules",),
     ("config_validation",),
-    ("cli",),
+    ("cli", "pretrained"),
 )
 
 #: ``(rule, importing file relative to sss2bathy/, imported module + name)``: known violations

@@ -451,12 +451,17 @@ def run_verdict(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> K
 
 
 def overlap_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """``verdict.overlap`` checked: ``enabled`` (true / false) and ``min_points`` (the
-    least overlap points that make a held-out line a fold, >= 1)."""
+    """``verdict.overlap`` checked: ``enabled`` (true / false; null = with the K-fold
+    verdict, ``verdict.folds`` >= 2) and ``min_points`` (the least overlap points that make
+    a held-out line a fold, >= 1)."""
     node = (cfg.get("verdict") or {}).get("overlap") or {}
-    enabled = node.get("enabled", False)
-    if not isinstance(enabled, bool):
-        raise ValueError(f"verdict.overlap.enabled: expected true or false, found {enabled!r}")
+    enabled = node.get("enabled")
+    if enabled is not None and not isinstance(enabled, bool):
+        raise ValueError(
+            f"verdict.overlap.enabled: expected true, false or null (with verdict.folds >= 2), "
+            f"found {enabled!r}"
+        )
+    enabled = verdict_folds(cfg) >= 2 if enabled is None else enabled
     min_points = node.get("min_points", 10)
     if isinstance(min_points, bool) or not isinstance(min_points, int) or min_points < 1:
         raise ValueError(f"verdict.overlap.min_points: expected a count >= 1, found {min_points!r}")

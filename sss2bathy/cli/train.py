@@ -189,18 +189,13 @@ def check_checkpoints(cfg: DictConfig, model: Any, ckpt_path: str | None) -> Non
     a checkpoint of the module being trained, ``data.cnn_checkpoint`` (a file) a CNN's.
     Each problem is one line naming the key, the file and what it holds; a resume logs
     where it starts ("resuming from <path> at epoch k (step s)")."""
-    from sss2bathy.utils.checkpoints import (
-        KIND_CNN,
-        expect_kind,
-        read_checkpoint,
-        resume_position,
-    )
+    from sss2bathy.utils.checkpoints import expect_kind, read_checkpoint, resume_position
 
     cnn = OmegaConf.select(cfg, "data.cnn_checkpoint")
     if OmegaConf.select(cfg, "data.normals") == "cnn" and cnn not in (None, "", "latest"):
-        expect_kind(
-            read_checkpoint(cnn, "data.cnn_checkpoint"), cnn, "data.cnn_checkpoint", KIND_CNN
-        )
+        from sss2bathy.data.cnn_normals import check_cnn_model  # .ckpt, .safetensors, pretrained
+
+        check_cnn_model(cnn, "data.cnn_checkpoint")
     if ckpt_path is None:
         return
     ckpt = read_checkpoint(ckpt_path, "ckpt_path")

@@ -36,6 +36,12 @@ The survey's sonar is compared with the one the checkpoint was trained on (its
 outside the trained range (or says a checkpoint records none); the normals are computed all
 the same.
 
+Besides Lightning checkpoints (``.ckpt``), every function here takes an exported model: a
+``<name>.safetensors`` with its ``<name>.json`` (:mod:`sss2bathy.data.cnn_model_file`;
+``python -m sss2bathy.pretrained export``), and ``"pretrained"``: the model shipped in the
+package (:data:`PRETRAINED_DIR`, :func:`shipped_model`), resolved by
+:func:`resolve_model_path`.
+
 Results are cached per line under ``survey_dir/predictions/<key>/<line>.npz`` where ``key``
 hashes the checkpoint file's content, the window size and overlap (the one used), the input
 channels, the sonar-mask parameters and the precision (only when not fp32, so older float32
@@ -56,6 +62,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from sss2bathy.data.cnn_model_file import NET_PACKAGE, as_checkpoint, is_model_file
 from sss2bathy.data.masks import (
     DEFAULT_CHANNELS,
     SonarMaskConfig,
@@ -79,10 +86,16 @@ from sss2bathy.utils.checkpoints import (
     read_checkpoint,
     run_scale,
 )
+from sss2bathy.utils.progress import log_progress
 
 log = logging.getLogger(__name__)
 
-NET_PACKAGE = "sss2bathy.models."
+#: ``cnn_checkpoint=pretrained``: the model shipped in the package, its folder and file stem
+#: (``<PRETRAINED_DIR>/<PRETRAINED_NAME>.safetensors`` + ``.json``). The folder is the package
+#: ``sss2bathy.pretrained`` (which exports models); found by path, not imported.
+PRETRAINED = "pretrained"
+PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
+PRETRAINED_NAME = "normal_cnn"
 COMPILED_PREFIX = "_orig_mod."
 #: Windows per forward pass on a CPU unless asked otherwise (``predict_normals(batch_size=)``):
 #: the paper network ran at 8.9 windows/s in bf16 with batches of 8 against 7.1 (4), 5.9
@@ -124,13 +137,39 @@ def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
     return found[-1]
 
 
+def shipped_model(folder: str | Path | None = None, name: str = PRETRAINED_NAME) -> Path | None:
+    """The weights file of the model shipped in the package (``folder``: another folder laid
+    out the same way), or None when this install ships none (no ``<name>.safetensors``)."""
+    path = Path(PRETRAINED_DIR if folder is None else folder) / f"{name}.safetensors"
+    return path if path.is_file() else None
+
+
+def resolve_model_path(ckpt_path: str | Path, key: str = "cnn_checkpoint") -> Path:
+    """``"pretrained"`` = :func:`shipped_model` (one line naming ``key`` when none is
+    shipped), else ``ckpt_path`` as a path (``~`` expanded; not checked)."""
+    if str(ckpt_path) == PRETRAINED:
+        shipped = shipped_model()
+        if shipped is None:
+            raise ValueError(
+                f"{key}: expected '{PRETRAINED}' to name the CNN shipped in the package "
+                f"({PRETRAINED_DIR / PRETRAINED_NAME}.safetensors), found none in this "
+                "install; give a checkpoint path (sss2bathy-train experiment=cnn) instead"
+            )
+        return shipped
+    return Path(str(ckpt_path)).expanduser()
+
+
 def resolve_cnn_checkpoint(
     ckpt_path: str | Path, runs_dir: str | Path | None, scale: str | None = None, key: str = ""
 ) -> Path:
     """A CNN checkpoint file: ``"latest"`` = :func:`latest_checkpoint` of ``runs_dir`` (runs
-    of ``scale`` only, when given), otherwise ``ckpt_path``, which must be a file. ``key``
-    names the setting in errors (``cnn_checkpoint``, ``ckpt_path``)."""
+    of ``scale`` only, when given), ``"pretrained"`` = the shipped model
+    (:func:`resolve_model_path`), otherwise ``ckpt_path`` (a ``.ckpt``, or an exported
+    ``.safetensors`` / ``.json``), which must be a file. ``key`` names the setting in errors
+    (``cnn_checkpoint``, ``ckpt_path``)."""
     key = key or "cnn_checkpoint"
+    if str(ckpt_path) == PRETRAINED:
+        return resolve_model_path(ckpt_path, key)
     if str(ckpt_path) == "latest":
         if runs_dir is None:
             raise ValueError(f"{key}: 'latest' needs the folder of the CNN runs, found none")
@@ -194,13 +233,15 @@ def stitch_windows(
 # --------------------------------------------------------------------- network
 def load_normal_net(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> nn.Module:
     """Rebuild the network of a :class:`~sss2bathy.modules.normal_cnn.NormalCNNModule`
-    checkpoint (safe loading, ``weights_only=True``) and return it in eval mode.
+    checkpoint (safe loading, ``weights_only=True``) or of an exported model (its
+    ``.safetensors`` + ``.json``; ``"pretrained"``: the shipped one) and return it in eval
+    mode.
 
     The class comes from ``hyper_parameters.net_config._target_``, which must name a class
     in ``sss2bathy.models`` (a checkpoint can not make us import anything else, and the
     LightningModule is never needed: only its plain network).
     """
-    path = Path(ckpt_path)
+    path = resolve_model_path(ckpt_path, "ckpt_path")
     if not path.is_file():
         raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {path}")
     ckpt = _checkpoint(path)
@@ -393,21 +434,58 @@ def _save_cached(path: Path, key: str, n_lat: np.ndarray, mask: np.ndarray) -> N
             np.savez_compressed(f, n_lat=n_lat, mask=mask, key=np.array(key))
 
 
-def _checkpoint(ckpt_path: str | Path, key: str = "cnn_checkpoint") -> dict[str, Any]:
+def _checkpoint(
+    ckpt_path: str | Path, key: str = "cnn_checkpoint", weights: bool = True
+) -> dict[str, Any]:
     """A CNN checkpoint, loaded safely (``weights_only=True``, on the CPU). Anything else
     (a SIREN or Lambert checkpoint, a truncated, foreign or code-carrying file) is one line
     naming ``key``, the file and what it is
     (:func:`~sss2bathy.utils.checkpoints.read_checkpoint`,
-    :func:`~sss2bathy.utils.checkpoints.expect_kind`)."""
+    :func:`~sss2bathy.utils.checkpoints.expect_kind`).
+
+    An exported model (``.safetensors`` / ``.json``, ``"pretrained"``) comes in the same
+    shape (:func:`~sss2bathy.data.cnn_model_file.as_checkpoint`: its JSON validated, its
+    weights' SHA-256 checked; without ``weights`` only the JSON is read)."""
+    ckpt_path = resolve_model_path(ckpt_path, key)
+    if is_model_file(ckpt_path):
+        try:
+            return as_checkpoint(ckpt_path, weights=weights)
+        except (ValueError, FileNotFoundError) as err:
+            raise type(err)(f"{key}: {err}") from None
     ckpt = read_checkpoint(ckpt_path, key)
     expect_kind(ckpt, ckpt_path, key, KIND_CNN)
     return ckpt
 
 
+def check_cnn_model(ckpt_path: str | Path, key: str = "cnn_checkpoint") -> Path:
+    """The file ``ckpt_path`` names (``"pretrained"`` resolved) once it reads as a CNN: a
+    Lightning CNN checkpoint (its kind checked) or an exported model (its JSON validated
+    and its weights' SHA-256 checked); else one line naming ``key``."""
+    path = resolve_model_path(ckpt_path, key)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{key}: expected a CNN checkpoint (.ckpt), an exported model (.safetensors) or "
+            f"'{PRETRAINED}', found no file {path}"
+        )
+    _checkpoint(path, key)
+    return path
+
+
+def model_net_config(ckpt_path: str | Path, key: str = "cnn_checkpoint") -> dict[str, Any]:
+    """The network's class path and constructor arguments a checkpoint or exported model
+    records (``net_config``)."""
+    config = (_checkpoint(ckpt_path, key, weights=False).get("hyper_parameters") or {}).get(
+        "net_config"
+    )
+    if not isinstance(config, Mapping):
+        raise ValueError(f"{key}: {ckpt_path} records no network (hyper_parameters.net_config)")
+    return dict(config)
+
+
 def checkpoint_window_config(ckpt_path: str | Path) -> dict[str, Any]:
     """``window_pings``, ``window_bins``, ``overlap`` of the windows a checkpoint was trained
     on, from the datamodule hyper-parameters Lightning stores in it (safe loading)."""
-    ckpt = _checkpoint(ckpt_path)
+    ckpt = _checkpoint(ckpt_path, weights=False)
     data = ckpt.get("datamodule_hyper_parameters") or {}
     keys = ("window_pings", "window_bins", "overlap")
     missing = [k for k in keys if k not in data]
@@ -427,7 +505,7 @@ def checkpoint_input_spec(ckpt_path: str | Path) -> dict[str, Any]:
     training datamodule's ``sonar_mask`` parameters, else the defaults of
     :class:`~sss2bathy.data.masks.SonarMaskConfig`. Both are validated.
     """
-    ckpt = _checkpoint(ckpt_path)
+    ckpt = _checkpoint(ckpt_path, weights=False)
     model = ckpt.get("hyper_parameters") or {}
     data = ckpt.get("datamodule_hyper_parameters") or {}
     channels = model.get("input_channels", data.get("input_channels"))
@@ -444,7 +522,7 @@ def checkpoint_input_spec(ckpt_path: str | Path) -> dict[str, Any]:
 
 def checkpoint_sonar_envelope(ckpt_path: str | Path) -> Any:
     """The training sonar a checkpoint stores (``sonar_envelope``), or None (older ones)."""
-    return _checkpoint(ckpt_path).get(SONAR_ENVELOPE_KEY)
+    return _checkpoint(ckpt_path, weights=False).get(SONAR_ENVELOPE_KEY)
 
 
 def warn_sonar_outside(ckpt_path: str | Path, survey: Survey, line_names: Sequence[str]) -> None:
@@ -517,7 +595,8 @@ def predict_normals(
     """Predicted n_lat waterfalls of whole lines, cached under ``survey_dir/predictions/``.
 
     Args:
-        ckpt_path: a ``NormalCNNModule`` checkpoint.
+        ckpt_path: a ``NormalCNNModule`` checkpoint, an exported model (``.safetensors``)
+            or ``"pretrained"`` (the shipped model).
         survey: the survey holding the lines.
         survey_dir: the survey's folder (cache root).
         line_names: lines to predict.
@@ -552,7 +631,8 @@ def predict_normals(
         absent = [n for n in line_names if n not in draped]
         if absent:
             raise ValueError(f"draped: expected an entry for every line, missing {absent}")
-    if not Path(ckpt_path).is_file():
+    ckpt_path = resolve_model_path(ckpt_path, "ckpt_path")
+    if not ckpt_path.is_file():
         raise ValueError(f"ckpt_path: expected an existing checkpoint file, found {ckpt_path}")
     if window_cfg is None:
         window_cfg = checkpoint_window_config(ckpt_path)
@@ -590,7 +670,7 @@ def predict_normals(
     cache_dir = Path(survey_dir) / "predictions" / key
     net: nn.Module | None = None
     results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for name in line_names:
+    for name in log_progress(line_names, "CNN inference", unit="lines"):
         line = survey.line(name)
         sonar = sonar_only_mask(line, spec["sonar_mask"])
         path = cache_dir / f"{name}.npz"

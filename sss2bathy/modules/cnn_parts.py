@@ -1,16 +1,18 @@
 """Plain parts of the normal CNN's module (no Lightning): the network built from a factory
-and its input channels, the batch contract, plain-value descriptions for hparams."""
+and its input channels, its start from a trained CNN's weights (``model.init``: fine-tuning),
+the batch contract, plain-value descriptions for hparams."""
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
-from sss2bathy.data.masks import check_channels
+from sss2bathy.data.masks import SonarMaskConfig, check_channels
 
 BATCH_KEYS = ("intensity", "n_lat", "mask")
 COMPILED_PREFIX = "_orig_mod."
@@ -70,6 +72,76 @@ def build_net(net: nn.Module | Callable[..., nn.Module], channels: Sequence[str]
     return net
 
 
+def init_from_model(
+    net: nn.Module, source: str, channels: Sequence[str], key: str = "model.init"
+) -> dict[str, Any]:
+    """Load a trained CNN's weights into ``net`` (fine-tuning): ``source`` is
+    ``"pretrained"`` (the CNN shipped in the package), a ``.ckpt`` of a CNN run or an
+    exported ``.safetensors``. Its input channels and its network (class and every argument)
+    must be this run's; each mismatch is one line naming ``key``, the file, this run's
+    values and the file's (``python -m sss2bathy.pretrained overrides`` prints the overrides
+    that make a run match a model). Returns a plain record of what was loaded (``source``,
+    ``path``, ``sha256``, ``sonar_mask``: the file's, which the run's data should share)."""
+    from sss2bathy.data.cnn_normals import (
+        check_cnn_model,
+        checkpoint_input_spec,
+        load_normal_net,
+        model_net_config,
+    )
+    from sss2bathy.utils.atomic import file_sha256
+
+    if not isinstance(source, str | Path) or not str(source):
+        raise ValueError(
+            f"{key}: expected null, pretrained or the path of a CNN (.ckpt / .safetensors), "
+            f"found {source!r}"
+        )
+    path = check_cnn_model(source, key)
+    spec = checkpoint_input_spec(path)
+    if list(spec["channels"]) != list(channels):
+        raise ValueError(
+            f"{key}: {path} was trained on input channels {list(spec['channels'])}, expected "
+            f"this run's {list(channels)} (data.input_channels)"
+        )
+    ours, theirs = net_config(net), model_net_config(path, key)
+    if ours is None:
+        raise ValueError(
+            f"{key}: expected a network that describes itself (config()), found "
+            f"{type(net).__name__}"
+        )
+    differ = [k for k in sorted(set(ours) | set(theirs)) if ours.get(k) != theirs.get(k)]
+    if differ:
+        found = ", ".join(f"{k}={ours.get(k)!r} (file: {theirs.get(k)!r})" for k in differ)
+        raise ValueError(
+            f"{key}: expected this run's network (model.net) to be the one of {path}, found "
+            f"{found}; set model.net.<key> to the file's"
+        )
+    trained = load_normal_net(path)
+    net.load_state_dict(trained.state_dict(), strict=True)
+    return {
+        "source": str(source),
+        "path": str(path),
+        "sha256": file_sha256(path, length=64),
+        "sonar_mask": dict(spec["sonar_mask"]),
+    }
+
+
+def sonar_mask_mismatch(record: Mapping[str, Any] | None, data_mask: Any) -> str | None:
+    """A warning when the data's ``sonar_mask`` (a datamodule's hparam) differs from the one
+    the weights in ``record`` (:func:`init_from_model`) were trained with, else None."""
+    if not record or data_mask is None:
+        return None
+    ours = SonarMaskConfig.coerce(data_mask).to_dict()
+    theirs = SonarMaskConfig.coerce(record.get("sonar_mask")).to_dict()
+    differ = [k for k in sorted(ours) if ours[k] != theirs.get(k)]
+    if not differ:
+        return None
+    found = ", ".join(f"{k}={ours[k]!r} (weights: {theirs.get(k)!r})" for k in differ)
+    return (
+        f"model.init: the data's sonar_mask differs from the one {record.get('path')} was "
+        f"trained with: {found}; the intensity is normalised differently from its training"
+    )
+
+
 def check_batch(batch: Mapping[str, torch.Tensor], n_inputs: int = 1) -> None:
     """Raise ``ValueError`` naming the key if ``batch`` lacks or mis-shapes a field
     (``n_inputs``: the network's input channels; ``inputs`` is required when > 1)."""
@@ -109,6 +181,8 @@ __all__ = [
     "build_net",
     "check_batch",
     "describe_factory",
+    "init_from_model",
     "input_channel_names",
     "net_config",
+    "sonar_mask_mismatch",
 ]

@@ -33,8 +33,10 @@ from sss2bathy.modules.cnn_parts import (
     build_net,
     check_batch,
     describe_factory,
+    init_from_model,
     input_channel_names,
     net_config,
+    sonar_mask_mismatch,
 )
 from sss2bathy.utils.checks import require_bool
 
@@ -73,6 +75,12 @@ class NormalCNNModule(pl.LightningModule):
             ``net(in_channels=...)`` (Hydra ``_partial_: true``), built with one input per
             channel; a built network must have ``in_channels`` equal to their number.
         channels_last: run the network in ``torch.channels_last`` memory format.
+        init: start from a trained CNN's weights (fine-tuning): ``"pretrained"`` (the CNN
+            shipped in the package), a ``.ckpt`` of a CNN run or an exported
+            ``.safetensors``; None: random weights. Its input channels and network must be
+            this run's (:func:`~sss2bathy.modules.cnn_parts.init_from_model`: one line
+            otherwise); what was loaded is kept in the hparams (``init``), and a data
+            ``sonar_mask`` other than the weights' is a WARNING at the start of the fit.
 
     The checkpoint's hyper-parameters hold plain values only (``net_config``: the network's
     class path and arguments), so ``torch.load(weights_only=True)`` can read it and
@@ -93,10 +101,12 @@ class NormalCNNModule(pl.LightningModule):
         compile: bool = False,
         input_channels: Sequence[str] | None = None,
         channels_last: bool = False,
+        init: str | None = None,
     ) -> None:
         super().__init__()
         channels = input_channel_names(input_channels)
         net = build_net(net, channels)
+        init_record = None if init is None else init_from_model(net, init, channels)
         if not callable(optimizer):
             raise ValueError(
                 f"optimizer: expected a factory optimizer(params=...), found {optimizer!r}"
@@ -121,6 +131,7 @@ class NormalCNNModule(pl.LightningModule):
                 "compile": require_bool("compile", compile),
                 "input_channels": list(channels),
                 "channels_last": bool(channels_last),
+                "init": init_record,
             },
             logger=False,
         )
@@ -268,6 +279,10 @@ class NormalCNNModule(pl.LightningModule):
         envelope = getattr(dm, "sonar_envelope", None)
         if envelope is not None:
             self.sonar_envelope = envelope
+        data_mask = (getattr(dm, "hparams", None) or {}).get("sonar_mask")
+        mismatch = sonar_mask_mismatch(self.hparams.get("init"), data_mask)
+        if mismatch is not None:
+            log.warning("%s", mismatch)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the training sonar (the datamodule's, else the one of the checkpoint this

@@ -182,9 +182,14 @@ def test_map_config_checks_the_overlap_block_and_prints_the_score():
     from sss2bathy.cli.map import MapResult, check_map_config, overlap_settings
 
     cfg = OmegaConf.load(CONF / "map.yaml")
-    assert overlap_settings(cfg) == {"enabled": True, "min_points": 10}  # on by default
+    # on with the K-fold verdict (the default), off with one held-out draw unless asked for
+    assert overlap_settings(cfg) == {"enabled": True, "min_points": 10}
+    cfg.verdict.folds = 0
+    assert overlap_settings(cfg)["enabled"] is False
+    cfg.verdict.overlap.enabled = True
+    assert overlap_settings(cfg)["enabled"] is True
     for key, bad, expected in (
-        ("enabled", "yes", "verdict.overlap.enabled: expected true or false"),
+        ("enabled", "yes", "verdict.overlap.enabled: expected true, false or null"),
         ("min_points", 0, "verdict.overlap.min_points: expected a count >= 1"),
     ):
         broken = cfg.copy()
