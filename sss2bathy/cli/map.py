@@ -68,7 +68,11 @@ HELP = CliHelp(
             f"{', '.join(MAP_METHODS)} (default: siren_cnn_n2d with a "
             "checkpoint, else siren_lambert)",
         ),
-        ("cnn_checkpoint=CKPT", "a CNN checkpoint (sss2bathy-train experiment=cnn)"),
+        (
+            "cnn_checkpoint=CKPT",
+            "a CNN checkpoint (.ckpt of sss2bathy-train experiment=cnn), an exported model "
+            "(.safetensors) or pretrained (the shipped CNN: method=siren_cnn_n2d's default)",
+        ),
         (
             "survey.KEY=VALUE",
             "import and sonar settings, e.g. survey.crs=EPSG:32633 "
@@ -135,6 +139,45 @@ def map_experiment(cfg: Mapping[str, Any]) -> str:
     return str(method)
 
 
+def map_cnn_checkpoint(cfg: Mapping[str, Any]) -> str | None:
+    """The CNN file of a map config, as an absolute path: ``cnn_checkpoint`` (a ``.ckpt``,
+    an exported ``.safetensors`` or ``pretrained``, the model shipped in the package), else
+    for SIREN-CNN-N2d the shipped model (None when this install ships none)."""
+    from sss2bathy.data.cnn_normals import resolve_model_path, shipped_model
+
+    ckpt = cfg.get("cnn_checkpoint")
+    if ckpt is None:
+        shipped = shipped_model() if map_experiment(cfg) == "siren_cnn_n2d" else None
+        return None if shipped is None else str(shipped.resolve())
+    path = resolve_model_path(ckpt, "cnn_checkpoint")
+    if not path.is_file():
+        raise ValueError(
+            f"cnn_checkpoint: expected a CNN checkpoint file (sss2bathy-train "
+            f"experiment=cnn), an exported model (.safetensors) or 'pretrained', found no "
+            f"file at {str(path)!r}"
+        )
+    return str(path.resolve())
+
+
+def log_cnn_choice(cfg: Mapping[str, Any]) -> None:
+    """One INFO line on where the map's normals come from when no ``cnn_checkpoint`` was
+    given: the shipped CNN (SIREN-CNN-N2d), or why the default method is SIREN-Lambert."""
+    from sss2bathy.data.cnn_normals import shipped_model
+
+    if cfg.get("cnn_checkpoint") is not None:
+        return
+    shipped = shipped_model()
+    if map_experiment(cfg) == "siren_cnn_n2d" and shipped is not None:
+        log.info("cnn_checkpoint: none given: the CNN shipped in the package, %s", shipped)
+    elif not cfg.get("method"):
+        log.info(
+            "method: null = siren_lambert (no cnn_checkpoint; %s)",
+            "method=siren_cnn_n2d uses the shipped pretrained CNN"
+            if shipped is not None
+            else "this install ships no pretrained CNN",
+        )
+
+
 MAP_SETTINGS = ("scale", "survey")
 
 
@@ -175,15 +218,7 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
     """The ``train`` config a map config stands for (run folder ``run_dir``)."""
     from hydra import compose
 
-    ckpt = cfg.get("cnn_checkpoint")
-    if ckpt is not None:
-        path = Path(str(ckpt)).expanduser()
-        if not path.is_file():
-            raise ValueError(
-                f"cnn_checkpoint: expected a CNN checkpoint file (sss2bathy-train "
-                f"experiment=cnn), found no file at {str(path)!r}"
-            )
-        ckpt = str(path.resolve())
+    ckpt = map_cnn_checkpoint(cfg)
     survey = OmegaConf.to_container(cfg.survey, resolve=True)
     survey["name"] = survey.get("name") or default_survey_name(survey["files"])
     train_cfg = compose("train", overrides=train_overrides(cfg, choices))
@@ -194,7 +229,8 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         elif train_cfg.data.get("normals") == "cnn":
             raise ValueError(
                 f"cnn_checkpoint: expected a CNN checkpoint for method "
-                f"{map_experiment(cfg)!r} (CNN normals), found none"
+                f"{map_experiment(cfg)!r} (CNN normals), found none (and this install ships "
+                "no pretrained CNN in sss2bathy/pretrained/)"
             )
         for key in ("fraction", "block_pings", "block_m"):
             if cfg.holdout.get(key) is not None:
@@ -597,6 +633,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     the fit on every altimeter point (the folds estimate its held-out error)."""
     from sss2bathy.cli.train import fit
 
+    log_cnn_choice(cfg)
     verdict = run_verdict(cfg, run_dir, choices)
     overlap, overlap_note = run_overlap(cfg, run_dir, choices)
     train_cfg = compose_train_config(cfg, run_dir, choices)
