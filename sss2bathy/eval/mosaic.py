@@ -71,6 +71,7 @@ from sss2bathy.survey import (
 )
 from sss2bathy.survey.masks import MASK_NAMES
 from sss2bathy.utils.atomic import save_figure
+from sss2bathy.utils.progress import log_progress
 
 log = logging.getLogger(__name__)
 
@@ -448,7 +449,7 @@ def build_mosaic(
         surface = as_surface(grid, DrapeConfig.coerce(drape_cfg).engine)
     bits = blank_bits(cfg.blank)
     placed = []
-    for line in chosen:
+    for line in log_progress(chosen, "mosaic: placing", unit="lines"):
         values, smask = mosaic_values(line, cfg.normalise, cfg.sonar_mask)
         pl = place_line(line, cfg.placement, surface, smask, drape_cfg)
         # a bin without a point (water column, draped shadow or no hit) is never placed
@@ -476,7 +477,7 @@ def build_mosaic(
     ny, nx = out.shape
     acc = _Accumulator((ny, nx), cfg.overlap)
     west, south = out.x0 - cfg.resolution / 2, out.y0 - cfg.resolution / 2
-    for _line, pl, values, ok in placed:
+    for _line, pl, values, ok in log_progress(placed, "mosaic: gridding", unit="lines"):
         flat_values = values.reshape(-1)
         for pts, g, idx in _footprint_samples(
             pl.points[..., :2], pl.ground_range, ok, out.cell_size
@@ -545,12 +546,13 @@ def write_mosaic(
 
 def _describe_band(path: Path, normalise: str) -> None:
     """The band's unit and description: intensities, not the heights a map holds."""
-    import rasterio
-
-    add_geotiff_tags(path, {})  # keeps the provenance; then the band's own labels
-    with rasterio.open(path, "r+") as dst:
-        dst.set_band_unit(1, "" if normalise != "raw" else "counts")
-        dst.set_band_description(1, VALUE_DESCRIPTION[normalise])
+    # keeps the provenance (and the COG layout: the file is rewritten, not edited)
+    add_geotiff_tags(
+        path,
+        {},
+        unit="" if normalise != "raw" else "counts",
+        description=VALUE_DESCRIPTION[normalise],
+    )
 
 
 def render_mosaic(
