@@ -200,6 +200,7 @@ def check_map_config(cfg: DictConfig) -> None:
     mosaic_placement(cfg)
     verdict_folds(cfg)
     overlap_settings(cfg)
+    uncertainty_scale(cfg)
 
 
 def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[str]:
@@ -272,11 +273,11 @@ class MapResult:
             "map (GeoTIFF)": self.run_dir / "map.tif",
             "map (PNG)": self.run_dir / "map.png",
             "metrics": self.run_dir / "metrics.json",
-            **(
-                {"mosaic (GeoTIFF)": self.run_dir / "mosaic.tif"}
-                if (self.run_dir / "mosaic.tif").is_file()
-                else {}
-            ),
+            **{
+                label: self.run_dir / name
+                for label, name in OPTIONAL_OUTPUTS.items()
+                if (self.run_dir / name).is_file()
+            },
         }
 
     def metric(self, name: str) -> float | None:
@@ -345,6 +346,7 @@ class MapResult:
         lines = [f"sss2bathy-map: {self.experiment} on survey '{self.survey_name}'"]
         lines += [f"  {label + ':':18s}{path}" for label, path in self.paths.items()]
         lines += self.coverage_lines()
+        lines += self.uncertainty_lines()
         fit, interp = self.metric("holdout_alt_mae"), self.metric("holdout_interp_mae")
         if self.verdict is not None:
             lines += self.verdict_lines()
@@ -369,6 +371,18 @@ class MapResult:
         if self.has_mbes and self.metric("mae") is not None:
             lines.append(f"  MAE against the MBES grid: {self.metric('mae'):.3f} m")
         return lines
+
+    def uncertainty_lines(self) -> list[str]:
+        """The uncertainty layer's summary (``uncertainty/*`` of the metrics)."""
+        median = self.metrics.get("uncertainty/sigma_median_m")
+        if median is None:
+            return []
+        p95 = self.metrics.get("uncertainty/sigma_p95_m", math.nan)
+        return [
+            f"  height uncertainty (uncertainty.tif): 1 sigma median {median:.3f} m, 95th "
+            f"percentile {p95:.3f} m ({self.metrics.get('uncertainty/scale', math.nan):g} x "
+            f"the jackknife of the {int(self.metrics.get('uncertainty/folds', 0))} fold fits)"
+        ]
 
     def overlap_lines(self) -> list[str]:
         """The overlap score's table and verdict, or the one line saying why there is none."""
@@ -656,7 +670,13 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
         metrics.update(overlap.metrics("verdict/overlap/"))
         add_to_metrics_json(Path(run_dir) / "metrics.json", overlap.metrics("verdict/overlap/"))
     write_map_mosaic(cfg, train_cfg, Path(run_dir))
-    return MapResult(
+    sigma = write_map_uncertainty(
+        cfg, train_cfg, Path(run_dir), verdict, str(choices.get("scale") or "demo")
+    )
+    metrics.update(sigma)
+    add_to_metrics_json(Path(run_dir) / "metrics.json", sigma)
+    write_map_item(cfg, train_cfg, Path(run_dir), verdict)
+    mapped = MapResult(
         Path(run_dir),
         map_experiment(cfg),
         str(train_cfg.data.survey.name),
@@ -666,6 +686,174 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
         overlap,
         overlap_note,
     )
+    write_map_report(cfg, Path(run_dir), mapped.summary())
+    return mapped
+
+
+#: files a map run may hold beside map.tif, map.png and metrics.json (summary labels)
+OPTIONAL_OUTPUTS = {
+    "mosaic (GeoTIFF)": "mosaic.tif",
+    "sigma (GeoTIFF)": "uncertainty.tif",
+    "STAC item": "item.json",
+    "report": "report.html",
+}
+
+
+def uncertainty_scale(cfg: Mapping[str, Any], preset: str | None = None) -> float | None:
+    """``uncertainty``: None when off (``enabled: false``), else its factor: ``scale`` when
+    set, else ``calibrated[preset]`` (the scale preset's calibration), else 1 (the raw
+    jackknife) with a WARNING. Without ``preset`` only the values are checked."""
+    node = cfg.get("uncertainty") or {}
+    if not node.get("enabled", False):
+        return None
+    calibrated = node.get("calibrated") or {}
+    for key, value in [
+        ("scale", node.get("scale")),
+        *((f"calibrated.{k}", v) for k, v in calibrated.items()),
+    ]:
+        if value is None and key == "scale":
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+            raise ValueError(
+                f"uncertainty.{key}: expected a positive factor (1 = the raw jackknife), "
+                f"found {value!r}"
+            )
+    if node.get("scale") is not None:
+        return float(node["scale"])
+    if preset is None:
+        return math.nan
+    if preset in calibrated:
+        return float(calibrated[preset])
+    log.warning(
+        "uncertainty.calibrated has no factor for scale=%s (calibrated: %s): uncertainty.tif "
+        "holds the raw jackknife (scale 1), too narrow an error bar; set uncertainty.scale",
+        preset,
+        ", ".join(str(k) for k in calibrated) or "none",
+    )
+    return 1.0
+
+
+def _survey_of(train_cfg: DictConfig) -> Any:
+    from sss2bathy.survey import Survey
+
+    return Survey.load(Path(str(train_cfg.paths.data_dir)) / str(train_cfg.data.survey.name))
+
+
+def write_map_uncertainty(
+    cfg: DictConfig,
+    train_cfg: DictConfig,
+    run_dir: Path,
+    verdict: KFoldVerdict | None,
+    preset: str = "demo",
+) -> dict[str, float]:
+    """``uncertainty.tif`` + ``.png`` from the verdict's fold fits
+    (:func:`sss2bathy.eval.uncertainty.write_run_uncertainty`, the factor of
+    :func:`uncertainty_scale` for the scale ``preset``); its metrics, or ``{}`` when off or
+    without the verdict's folds (one line in the log says which)."""
+    scale = uncertainty_scale(cfg, preset)
+    if scale is None:
+        return {}
+    if verdict is None:
+        log.info(
+            "no uncertainty.tif: it comes from the K-fold verdict's fits (verdict.folds >= 2, "
+            "found %s)",
+            verdict_folds(cfg),
+        )
+        return {}
+    from sss2bathy.eval.uncertainty import write_run_uncertainty
+    from sss2bathy.eval.verdict import LABELS
+
+    method = map_experiment(cfg)
+    try:
+        written = write_run_uncertainty(
+            run_dir, method, scale, _survey_of(train_cfg).origin, LABELS.get(method, method)
+        )
+    except ValueError as err:  # the map is written: an uncertainty that cannot be made is not fatal
+        log.warning("uncertainty.tif not written (the map is): %s", err)
+        return {}
+    log.info(
+        "height uncertainty written to %s (1 sigma median %.3f m)",
+        written.tif,
+        written.summary["median"],
+    )
+    return written.to_metrics()
+
+
+def write_map_item(
+    cfg: DictConfig, train_cfg: DictConfig, run_dir: Path, verdict: KFoldVerdict | None
+) -> Path | None:
+    """``item.json``: the run's STAC Item (:mod:`sss2bathy.io.stac`) with its rasters, PNGs
+    and metrics as assets, the ping times and the processing record; None when ``stac`` is
+    off. Every raster is checked to be a cloud-optimised GeoTIFF (a WARNING names what is
+    not)."""
+    import sys
+
+    import rasterio
+
+    from sss2bathy.io.export import TAG_PREFIX, cog_layout
+    from sss2bathy.io.stac import AssetSpec, map_item, write_item
+
+    for name in ("map.tif", "uncertainty.tif", "mosaic.tif"):
+        if (run_dir / name).is_file():
+            problems = cog_layout(run_dir / name).problems()
+            if problems:
+                log.warning("%s: not a cloud-optimised GeoTIFF: %s", name, "; ".join(problems))
+    if not cfg.get("stac", False):
+        return None
+    survey = _survey_of(train_cfg)
+    times = [t for line in survey.lines for t in (line.time_s[0], line.time_s[-1])]
+    with rasterio.open(run_dir / "map.tif") as src:
+        tags = src.tags()
+    specs = {
+        "map": ("map.tif", "bathymetry (m, up)", ("data",)),
+        "uncertainty": ("uncertainty.tif", "height uncertainty, 1 sigma (m)", ("data",)),
+        "mosaic": ("mosaic.tif", "sidescan mosaic", ("data",)),
+        "metrics": ("metrics.json", "metrics and held-out scores", ("metadata",)),
+        "verdict": ("verdict.json", "the K-fold held-out verdict", ("metadata",)),
+        "map_png": ("map.png", "bathymetry quicklook", ("overview", "visual")),
+        "uncertainty_png": ("uncertainty.png", "uncertainty quicklook", ("overview",)),
+        "mosaic_png": ("mosaic.png", "mosaic quicklook", ("overview",)),
+        "report": ("report.html", "report of the run", ("metadata",)),
+    }
+    assets = {
+        key: AssetSpec(run_dir / name, title, roles)
+        for key, (name, title, roles) in specs.items()
+        if (run_dir / name).is_file() or name == "report.html" and cfg.get("report", False)
+    }
+    extra = {"sss2bathy:survey": survey.name}
+    if verdict is not None:
+        extra["sss2bathy:verdict"] = verdict.outcome
+    try:
+        item = map_item(
+            f"{survey.name}_{run_dir.name}",
+            run_dir / "map.tif",
+            min(times),
+            max(times),
+            assets,
+            run_dir,
+            method=map_experiment(cfg),
+            command=list(sys.argv),
+            cnn_checkpoint_sha256=tags.get(f"{TAG_PREFIX}CNN_CHECKPOINT_SHA256"),
+            properties=extra,
+        )
+    except ValueError as err:  # the map is written: an item that cannot be made is not fatal
+        log.warning("item.json not written (the map is): %s", err)
+        return None
+    path = write_item(item, run_dir / "item.json")
+    log.info("STAC item written to %s", path)
+    return path
+
+
+def write_map_report(cfg: DictConfig, run_dir: Path, summary: Sequence[str]) -> Path | None:
+    """``report.html`` (:func:`sss2bathy.eval.map_report.write_map_report`) unless
+    ``report`` is off."""
+    if not cfg.get("report", False):
+        return None
+    from sss2bathy.eval.map_report import write_map_report as write
+
+    path = write(run_dir, summary=summary)
+    log.info("report written to %s", path)
+    return path
 
 
 MOSAIC_PLACEMENTS = ("map", "flat", "none")
