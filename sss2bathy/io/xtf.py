@@ -42,6 +42,7 @@ import datetime as _dt
 import logging
 import math
 import mmap
+import os
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -153,13 +154,43 @@ def _crs_string(crs: Any) -> str | None:
 
 
 # ----------------------------------------------------------------------------- parsing
+@dataclass(frozen=True)
+class _FileSamples:
+    """Where one channel's samples lie in the file (read when resampled, not when parsed)."""
+
+    offset: int
+    dtype: np.dtype
+    size: int
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+
 @dataclass
 class _Channel:
-    """One side of one ping, as stored."""
+    """One side of one ping: its samples as stored (an array, or where they lie in the file)
+    and what turns them into intensities (:meth:`load`)."""
 
-    samples: np.ndarray  # float64, bin 0 nearest the sonar
+    data: np.ndarray | _FileSamples
+    scale: float
+    flip: bool
     r_start: float
     r_end: float
+
+    @property
+    def size(self) -> int:
+        return int(self.data.size)
+
+    def load(self, fd: int | None) -> np.ndarray:
+        """float64 samples scaled by ``scale``, bin 0 nearest the sonar (``fd``: the file,
+        for samples not in memory)."""
+        data = self.data
+        if isinstance(data, _FileSamples):
+            raw = os.pread(fd, data.nbytes, data.offset)
+            data = np.frombuffer(raw, dtype=data.dtype, count=data.size)
+        samples = data.astype(np.float64) * self.scale
+        return samples[::-1] if self.flip else samples
 
 
 @dataclass
@@ -175,6 +206,10 @@ class _Parsed:
 
 
 _MAGIC_BYTES = MAGIC.to_bytes(2, "little")
+# parsing hands back the pages of the file it has read past every this many bytes
+_RELEASE_BYTES = 64 << 20
+# samples resampled at a time (bytes of float64 samples): bounds the memory of the resampling
+_RESAMPLE_BYTES = 32 << 20
 
 
 def _packet_size(raw, pos: int, size: int, n_start: int, chained: bool = True) -> int | None:
@@ -228,7 +263,12 @@ def _parse_packets(path: Path, channel_pair: int) -> _Parsed:
             )
         _sidescan_channels(header, path, channel_pair)  # refuse before parsing any ping
         pos = FILE_HEADER_BYTES
+        released = 0  # the pages of the map before this offset are handed back
         while pos < size:
+            if pos - released >= _RELEASE_BYTES:
+                # the map's pages read so far count in the process's memory until released
+                raw.madvise(mmap.MADV_DONTNEED, released, pos - pos % mmap.PAGESIZE - released)
+                released = pos - pos % mmap.PAGESIZE
             n_bytes = _packet_size(raw, pos, size, n_start)
             resume = nxt = None
             if n_bytes is None:
@@ -313,10 +353,16 @@ def _report_damage(
 
 
 def _parse_ping(f, header: XTFFileHeader, path: Path, index: int) -> XTFPingHeader:
+    """The sonar ping at ``f``'s position, parsed and checked by pyxtf; its ``data`` are
+    :class:`_FileSamples` (where each channel's samples lie), so that the pings of a line
+    hold no samples and a file of any size is parsed in bounded memory."""
+    pos = f.tell()
     try:
         ping = XTFPingHeader.create_from_buffer(f, file_header=header)
     except (RuntimeError, ValueError, IndexError, KeyError) as exc:
         raise SurveyFormatError(path, f"ping {index}", "a readable sonar ping", exc) from None
+    offset = pos + ctypes.sizeof(XTFPingHeader)
+    where = []
     for chan, data in zip(ping.ping_chan_headers, ping.data, strict=True):
         if chan.NumSamples and data.size != chan.NumSamples:
             raise SurveyFormatError(
@@ -325,6 +371,10 @@ def _parse_ping(f, header: XTFFileHeader, path: Path, index: int) -> XTFPingHead
                 f"{chan.NumSamples} samples",
                 f"{data.size} (corrupt or truncated record)",
             )
+        offset += ctypes.sizeof(XTFPingChanHeader)
+        where.append(_FileSamples(offset, data.dtype, int(data.size)))
+        offset += data.nbytes
+    ping.data = where
     return ping
 
 
@@ -387,16 +437,13 @@ def _channel(
         if n < 1:
             return None
         scale = _sample_scale(header.ChanInfo[chan_no], data.dtype) * 2.0 ** (-ch.Weight)
-        samples = data.astype(np.float64) * scale
-        if flip:
-            samples = samples[::-1]
         r_start = max(float(ch.TimeDelay), 0.0) * c / 2.0
         r_end = float(ch.SlantRange)
         if not (math.isfinite(r_end) and r_end > r_start):
             r_end = (max(float(ch.TimeDelay), 0.0) + float(ch.TimeDuration)) * c / 2.0
         if not (math.isfinite(r_end) and r_end > r_start):
-            return _Channel(samples, r_start, math.nan)
-        return _Channel(samples, r_start, r_end)
+            return _Channel(data, scale, flip, r_start, math.nan)
+        return _Channel(data, scale, flip, r_start, r_end)
     return None
 
 
@@ -422,18 +469,23 @@ def _resample_group(
     return np.where(cover > 0, out / np.where(cover > 0, cover, 1.0), 0.0)
 
 
-def _resample_side(chans: list[_Channel], edges: np.ndarray) -> tuple[np.ndarray, int]:
-    """``(P, M)`` waterfall on the output bin edges; returns also the count of pings off-grid."""
-    P, M = len(chans), edges.size - 1
-    out = np.zeros((P, M))
-    keys = [(c.r_start, c.r_end, c.samples.size) for c in chans]
+def _resample_side(
+    chans: list[_Channel], edges: np.ndarray, out: np.ndarray, fd: int | None
+) -> int:
+    """Resample every ping's samples onto the output bin edges into ``out`` ``(P, M)``, a few
+    megabytes of samples at a time (read from the file ``fd`` where they are not in memory);
+    returns the count of range settings (groups of pings on the same recording window)."""
+    keys = [(c.r_start, c.r_end, c.size) for c in chans]
     groups: dict[tuple, list[int]] = {}
     for i, k in enumerate(keys):
         groups.setdefault(k, []).append(i)
-    for (r0, r1, _n), idx in groups.items():
-        block = np.stack([chans[i].samples for i in idx])
-        out[idx] = _resample_group(block, r0, r1, edges)
-    return out, len(groups)
+    for (r0, r1, n), idx in groups.items():
+        step = max(1, _RESAMPLE_BYTES // (8 * max(n, 1)))
+        for a in range(0, len(idx), step):
+            part = idx[a : a + step]
+            block = np.stack([chans[i].load(fd) for i in part])
+            out[part] = _resample_group(block, r0, r1, edges)
+    return len(groups)
 
 
 # ----------------------------------------------------------------------------- navigation
@@ -1130,12 +1182,13 @@ def read_xtf(
     # ---- waterfall on a common slant-range window
     r0 = float(np.median([c.r_start for c in ports + stbds]))
     r1 = float(np.median([c.r_end for c in ports + stbds]))
-    native = int(np.median([c.samples.size for c in ports + stbds]))
+    native = int(np.median([c.size for c in ports + stbds]))
     B = int(n_bins) if n_bins is not None else native
     edges = np.linspace(r0, r1, B + 1)
-    wf_port, groups_p = _resample_side(ports, edges)
-    wf_stbd, groups_s = _resample_side(stbds, edges)
-    intensity = np.stack([wf_port, wf_stbd], axis=1).astype(np.float32)
+    intensity = np.empty((len(ports), 2, B), dtype=np.float32)
+    with open(path, "rb") as f:  # the samples are read from the file as they are resampled
+        groups_p = _resample_side(ports, edges, intensity[:, 0], f.fileno())
+        groups_s = _resample_side(stbds, edges, intensity[:, 1], f.fileno())
     range_m = 0.5 * (edges[:-1] + edges[1:])
     if range_m[0] <= 0:
         raise SurveyFormatError(path, "TimeDelay/SlantRange", "positive slant ranges", r0)
