@@ -167,3 +167,7 @@ tb: install ## TensorBoard on outputs/
 clean: ## Remove caches and outputs (keeps data/ and .venv)
 	rm -rf outputs/runs outputs/multiruns outputs/report outputs/bench .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+.PHONY: pretrain
+pretrain: install ## The pretrained normal CNN on six simulated seabeds with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~1 h on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
+	$(BIN)/sss2bathy-train experiment=pretrain scale=$(SCALE) torch_threads=$${TORCH_THREADS:-1} $(ARGS)
