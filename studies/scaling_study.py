@@ -56,7 +56,6 @@ from typing import Any
 
 import numpy as np
 
-from sss2bathy.utils.atomic import atomic_write_text
 from studies.tables import fmt_cell, markdown_table, to_csv, write_tables
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -531,30 +530,95 @@ def run_sizes(
 
 
 def exponents(table: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Per stage, the power law of time and of memory above the baseline against size."""
+    """Per stage, power laws against size of the cost (``work_s``), of the peak memory and
+    of the working memory (peak above the baseline; NaN where a size's peak does not exceed
+    its baseline: the stage needs no more than what its process already held)."""
     out = []
     for stage in dict.fromkeys(r["stage"] for r in table):
         rows = sorted((r for r in table if r["stage"] == stage), key=lambda r: r["k"])
         if len(rows) < 2:
             continue
         ks = [r["k"] for r in rows]
-        key = "work_s"
-        t = power_law(ks, [r[key] for r in rows])
-        work = [max(r["peak_mb"] - r.get("baseline_mb", 0.0), 1.0) for r in rows]
-        m = power_law(ks, work)
+        t = power_law(ks, [r["work_s"] for r in rows])
+        m = power_law(ks, [r["peak_mb"] for r in rows])
+        work = [r["peak_mb"] - r["baseline_mb"] for r in rows if _number(r.get("baseline_mb"))]
+        w = (
+            power_law(ks, work)
+            if len(work) == len(rows) and min(work) > 0
+            else {"b": math.nan, "b_se": math.nan}
+        )
         out.append(
             {
                 "stage": stage,
-                "time": key,
                 "b_time": t["b"],
                 "b_time_se": t["b_se"],
-                "b_mem": m["b"],
-                "b_mem_se": m["b_se"],
+                "b_peak": m["b"],
+                "b_peak_se": m["b_se"],
+                "b_working": w["b"],
+                "b_working_se": w["b_se"],
                 "largest_k": ks[-1],
+                "largest_pings": rows[-1]["pings"],
+                "largest_work_s": rows[-1]["work_s"],
                 "largest_peak_mb": rows[-1]["peak_mb"],
             }
         )
     return out
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def read_table(path: Path) -> list[dict[str, Any]]:
+    """The rows of a ``scaling_study.csv`` (numbers as floats, empty cells dropped)."""
+    import csv
+
+    rows = []
+    with open(path, newline="") as f:
+        for raw in csv.DictReader(f):
+            row: dict[str, Any] = {}
+            for key, value in raw.items():
+                if value == "":
+                    continue
+                try:
+                    row[key] = float(value)
+                except ValueError:
+                    row[key] = value
+            rows.append(row)
+    return rows
+
+
+def write_report(out: Path, table: Sequence[Mapping[str, Any]], figure_path: Path) -> str:
+    """The rows and the exponents as Markdown + CSV in ``out``, the figure; the Markdown."""
+    fits = exponents(table)
+    cols = ["stage", "k", "pings", "work_s", "wall_s", "peak_mb", "baseline_mb", "lines_measured"]
+    extra_cols = ["per_step_s", "fixed_s", "schedule_steps", "projected_s"]
+    md = "\n".join(
+        markdown_table(
+            cols + extra_cols,
+            [[fmt_cell(r.get(c, "")) for c in cols + extra_cols] for r in table],
+        )
+    )
+    fcols = [
+        "stage",
+        "b_time",
+        "b_time_se",
+        "b_peak",
+        "b_peak_se",
+        "b_working",
+        "b_working_se",
+        "largest_pings",
+        "largest_work_s",
+        "largest_peak_mb",
+    ]
+    fits_md = "\n".join(markdown_table(fcols, [[fmt_cell(f[c]) for c in fcols] for f in fits]))
+    write_tables(
+        out, "scaling_study", md + "\n", to_csv(table, cols + extra_cols, ignore_extra=True)
+    )
+    write_tables(out, "scaling_fits", fits_md + "\n", to_csv(fits, fcols, ignore_extra=True))
+    md += "\n\n" + fits_md
+    figure(table, figure_path)
+    return md
 
 
 def figure(table: Sequence[Mapping[str, Any]], path: Path) -> None:
@@ -615,6 +679,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long-line", action="store_true", help="the long-line import only")
     parser.add_argument("--sizes-mb", type=float, nargs="+", default=[50.0, 500.0])
     parser.add_argument("--xtf-module", default=None, help="another xtf.py for --long-line")
+    parser.add_argument(
+        "--refit", action="store_true", help="the exponents and figure of --out's table again"
+    )
     parser.add_argument("--figure", type=Path, default=None, help="PNG (default: in --out)")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--xtf-dir", type=Path, help=argparse.SUPPRESS)
@@ -649,23 +716,13 @@ def main(argv: list[str] | None = None) -> int:
         write_tables(out, stem, md + "\n", to_csv(rows, cols, ignore_extra=True))
         print(md)
         return 0
-    table = run_sizes(out, args.sizes, args.stages, args.siren_steps, args.repeats, args.cnn_lines)
-    fits = exponents(table)
-    cols = ["stage", "k", "pings", "work_s", "wall_s", "peak_mb", "baseline_mb", "lines_measured"]
-    extra_cols = ["per_step_s", "fixed_s", "schedule_steps", "projected_s"]
-    md = "\n".join(
-        markdown_table(
-            cols + extra_cols,
-            [[fmt_cell(r.get(c, "")) for c in cols + extra_cols] for r in table],
+    if args.refit:
+        table = read_table(out / "scaling_study.csv")
+    else:
+        table = run_sizes(
+            out, args.sizes, args.stages, args.siren_steps, args.repeats, args.cnn_lines
         )
-    )
-    fcols = ["stage", "time", "b_time", "b_time_se", "b_mem", "b_mem_se", "largest_peak_mb"]
-    md += "\n\n" + "\n".join(markdown_table(fcols, [[fmt_cell(f[c]) for c in fcols] for f in fits]))
-    write_tables(
-        out, "scaling_study", md + "\n", to_csv(table, cols + extra_cols, ignore_extra=True)
-    )
-    atomic_write_text(out / "scaling_fits.json", json.dumps(fits, indent=1))
-    figure(table, args.figure or out / "scaling_study.png")
+    md = write_report(out, table, args.figure or out / "scaling_study.png")
     print(md)
     return 0
 

@@ -89,3 +89,30 @@ def test_long_line_imports_in_memory_well_below_its_size(tmp_path):
         mb_large,
     )
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss > 0
+
+
+def test_report_round_trip_and_exponents(tmp_path):
+    """The written table reads back to the same exponents; a stage whose peak never exceeds
+    its baseline has no working-memory exponent."""
+    from studies.scaling_study import exponents, read_table, write_report
+
+    table = []
+    for k in (1.0, 4.0, 16.0):
+        pings = 11520 * k
+        table.append(
+            {"stage": "import", "k": k, "pings": pings, "work_s": 5.0 * k, "wall_s": 20 * k}
+            | {"peak_mb": 300.0 + 10 * k, "baseline_mb": 280.0}
+        )
+        table.append(
+            {"stage": "drape", "k": k, "pings": pings, "work_s": 4.0 * k**1.05, "wall_s": 9 * k}
+            | {"peak_mb": 600.0, "baseline_mb": 600.0}
+        )
+    md = write_report(tmp_path, table, tmp_path / "fig.png")
+    assert (tmp_path / "fig.png").stat().st_size > 0 and "b_time" in md
+    fits = {f["stage"]: f for f in exponents(read_table(tmp_path / "scaling_study.csv"))}
+    assert fits["import"]["b_time"] == pytest.approx(1.0)
+    assert fits["drape"]["b_time"] == pytest.approx(1.05)
+    assert fits["drape"]["b_peak"] == pytest.approx(0.0, abs=1e-12)
+    assert math.isnan(fits["drape"]["b_working"])
+    assert 0 < fits["import"]["b_working"] < 1
+    assert (tmp_path / "scaling_fits.csv").read_text().startswith("stage,b_time")
