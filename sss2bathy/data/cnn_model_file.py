@@ -136,6 +136,8 @@ def metadata_from_checkpoint(ckpt: Mapping[str, Any], where: str) -> dict[str, A
             "window_bins": data["window_bins"],
             "overlap": data["overlap"],
             "batch_size": data.get("batch_size", 64),
+            # the training windows' overlap across track (null: overlap), for the record
+            "overlap_bins": data.get("overlap_bins"),
         },
         "sonar_envelope": _plain(envelope),
     }

@@ -47,6 +47,7 @@ def test_export_records_what_inference_and_the_card_need(tiny_run, exported):
     assert meta["network"]["base_width"] == 2 and meta["input_channels"] == ["intensity"]
     assert meta["windows"] == {
         "window_pings": 16, "window_bins": 32, "overlap": 0.75, "batch_size": 8,
+        "overlap_bins": None,
     }  # fmt: skip
     settings = meta["sonar_envelope"]["settings"]
     assert settings["frequency_hz"] == [850e3, 850e3] and settings["max_range_m"] == [25.0, 25.0]
