@@ -7,7 +7,8 @@ seabed, the error split by scale (:func:`sss2bathy.eval.cnn_table.scale_split`).
         --out outputs/studies/cnn_levers
 
 Each ``--run LABEL=RUN_DIR`` is a CNN training run (its ``checkpoints/last.ckpt``; the
-constant prediction of its skill is the training mean the run's ``metrics.json`` records).
+constant prediction of its skill is the training mean the run's ``metrics.json`` records, or
+with ``--constant-from FOLDER[:SPLIT]`` the mean draped n_lat of those training lines).
 Each ``--survey FOLDER[:SPLIT]`` is scored on its whole stitched lines (the prediction
 SIREN-CNN-N2d uses, :func:`sss2bathy.data.cnn_normals.predict_normals`) against its draping:
 pixel MAE and skill, the MAE of the error low-passed over boxes of a few sizes, the mean
@@ -48,16 +49,37 @@ def run_constant(run_dir: Path) -> float | None:
     return float(values[0]) if values else None
 
 
-def heads(ckpt: Path, folder: Path, split: str | None) -> list[tuple[Any, Any, Any]]:
-    """``(pred, truth, valid)`` per line and side of a survey (whole stitched lines)."""
-    from sss2bathy.data.cnn_normals import predict_normals
-    from sss2bathy.draping import DrapeConfig, drape_survey
+def survey_lines(folder: Path, split: str | None) -> tuple[Any, list[str]]:
+    """A survey folder and the names of its ``split`` (None: all lines)."""
     from sss2bathy.survey import Survey
 
     survey = Survey.load(folder)
     if split is not None and split not in survey.splits:
         raise ValueError(f"{folder}: expected a split of {sorted(survey.splits)}, found {split!r}")
-    names = list(survey.splits[split]) if split else [ln.name for ln in survey.lines]
+    return survey, list(survey.splits[split]) if split else [ln.name for ln in survey.lines]
+
+
+def mean_truth(folder: Path, split: str | None) -> float:
+    """Mean draped n_lat over the valid bins of a survey's lines (a training mean)."""
+    from sss2bathy.draping import DrapeConfig, drape_survey
+
+    survey, names = survey_lines(folder, split)
+    draped = drape_survey(survey, folder, DrapeConfig(), lines=names)
+    total, count = 0.0, 0
+    for name in names:
+        d = draped[name]
+        ok = d.valid & np.isfinite(d.n_lat)
+        total += float(d.n_lat[ok].sum())
+        count += int(ok.sum())
+    return total / max(count, 1)
+
+
+def heads(ckpt: Path, folder: Path, split: str | None) -> list[tuple[Any, Any, Any]]:
+    """``(pred, truth, valid)`` per line and side of a survey (whole stitched lines)."""
+    from sss2bathy.data.cnn_normals import predict_normals
+    from sss2bathy.draping import DrapeConfig, drape_survey
+
+    survey, names = survey_lines(folder, split)
     draped = drape_survey(survey, folder, DrapeConfig(), lines=names)
     predicted = predict_normals(ckpt, survey, folder, names)
     out = []
@@ -93,7 +115,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--survey", action="append", required=True, help="FOLDER[:SPLIT]")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--ckpt-name", default="last.ckpt", help="checkpoint in checkpoints/")
+    parser.add_argument(
+        "--constant-from", default=None, help="FOLDER[:SPLIT]: the training lines' mean n_lat"
+    )
     args = parser.parse_args(argv)
+    fixed = None
+    if args.constant_from:
+        folder, _, split = args.constant_from.partition(":")
+        fixed = mean_truth(Path(folder), split or None)
+        print(f"constant prediction: {fixed:+.5f} (mean n_lat of {args.constant_from})")
     runs = []
     for text in args.run:
         label, sep, folder = text.partition("=")
@@ -101,7 +131,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not sep or not ckpt.is_file():
             print(f"error: --run {text}: expected LABEL=RUN_DIR with {ckpt}", file=sys.stderr)
             return 2
-        runs.append((label, ckpt, run_constant(Path(folder))))
+        runs.append((label, ckpt, fixed if fixed is not None else run_constant(Path(folder))))
     rows = []
     for label, ckpt, constant in runs:
         for text in args.survey:
