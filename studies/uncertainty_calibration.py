@@ -267,7 +267,25 @@ def to_markdown(c: Mapping[str, float], rows: Sequence[Mapping[str, Any]], comma
             "",
             *table,
             "",
-            "Command:",
+            "How to read it:",
+            "",
+            "- *raw jackknife*: the fold fits differ only in which altimeter blocks they hold "
+            "out; they share every sidescan ping, the seed and the forward model, so what "
+            "they all get wrong (a seabed that is not Lambertian, a tilt that is off) never "
+            "shows in their spread. The raw coverage says how much too narrow that is; c "
+            "widens it by one factor per scale preset (the SIREN's size changes how far apart "
+            "the folds land, hence a factor per preset), and a preset without one gets the "
+            "raw jackknife with a WARNING.",
+            "- *within +-1 / +-2 sigma* on the evaluation surveys: how well c carries to "
+            "another seabed. A +-2 sigma share below 95 % at +-1 sigma near 68 % means "
+            "heavier tails than a Gaussian's.",
+            "- *Spearman*: whether sigma ranks the cells by their error (0: sigma says where "
+            "the map is bad no better than chance).",
+            "- *cost*: sigma needs the K-fold verdict (on by default, `verdict.folds: 5`); "
+            "beyond it, reading the K fold maps and writing one GeoTIFF (about a second).",
+            "",
+            "Command (runs that already finished are reused; new seeds are simulated and "
+            "mapped one fit at a time, torch_threads=1):",
             "",
             f"    {command}",
             "",
