@@ -171,3 +171,20 @@ clean: ## Remove caches and outputs (keeps data/ and .venv)
 .PHONY: pretrain
 pretrain: install ## The pretrained normal CNN on six simulated seabeds with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~1 h on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
 	$(BIN)/sss2bathy-train experiment=pretrain scale=$(SCALE) torch_threads=$${TORCH_THREADS:-1} $(ARGS)
+
+.PHONY: thread-bench
+thread-bench: install ## Thread policies under load: demo CNN and SIREN steps, 2 threads spinning / passive / 1 thread, quiet and beside a nice-19 busy loop -> outputs/thread_policy/
+	$(BIN)/python -m benchmarks.thread_policy $(ARGS)
+
+.PHONY: gpu-check
+gpu-check: install ## On a CUDA GPU (<= 10 min): paper-scale SIREN-GT-N2d to within 10 % of its best map, one paper-width CNN epoch, the GPU's name and memory -> outputs/gpu_check/ (no GPU: one line, exit 0)
+	$(BIN)/python -m studies.gpu_check $(ARGS)
+
+.PHONY: scaling-study
+scaling-study: install ## Cost vs survey size: XTF import, draping, CNN inference, SIREN fit at 1x/4x/16x the demo survey, one thread; exponents + figure (~35 min on a busy 2-core CPU) -> outputs/scaling_study/
+	$(BIN)/python -m studies.scaling_study --out outputs/scaling_study $(ARGS)
+	$(BIN)/python -m studies.scaling_study --long-line --sizes-mb 50 500 --out outputs/scaling_study
+
+.PHONY: tile-seams
+tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF survey: seam steps and MAE against the MBES, one fit at a time -> outputs/tile_seams/
+	$(BIN)/python -m studies.tile_seams --out outputs/tile_seams $(ARGS)

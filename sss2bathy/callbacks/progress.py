@@ -3,7 +3,7 @@
 Lightning's progress bar redraws one terminal line; redirected to a file it leaves nothing
 readable between a stage's start and its end. :class:`ProgressLogger` (``conf/callbacks/
 default.yaml``) logs instead, when stdout is not a terminal, a line at least every
-``every_s`` seconds of training or validation::
+``every_s`` seconds of training or validation, and of a test pass (batches)::
 
     train: epoch 3/50, 1200/20000 steps (6.0 %), 4.21 steps/s, 4 min 45 s elapsed, ETA 1 h 14 min
 
@@ -65,6 +65,8 @@ class ProgressLogger(pl.Callback):
         self.clock = clock
         self.is_terminal = is_terminal or (lambda: _is_terminal(sys.stdout))
         self.progress: ProgressLog | None = None
+        self.test_progress: ProgressLog | None = None
+        self.test_done = 0
 
     def active(self) -> bool:
         if self.when == "never":
@@ -119,3 +121,27 @@ class ProgressLogger(pl.Callback):
         if self.progress is not None:
             self.progress.update(trainer.global_step, self._label(trainer, "train done"), True)
             self.progress = None
+
+    # a test pass (``trainer.test``: the CNN's test lines and surveys) counts its batches
+    def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self.test_progress, self.test_done = None, 0
+        if not trainer.is_global_zero or not self.active():
+            return
+        try:
+            total: float | None = float(sum(trainer.num_test_batches))
+        except TypeError:  # an iterable without a length
+            total = None
+        self.test_progress = ProgressLog(
+            "test", total if total and math.isfinite(total) else None, self.every_s,
+            unit="batches", logger=log, clock=self.clock,
+        )  # fmt: skip
+
+    def on_test_batch_end(self, trainer: pl.Trainer, *args: Any, **kwargs: Any) -> None:
+        if self.test_progress is not None:
+            self.test_done += 1
+            self.test_progress.update(self.test_done)
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if self.test_progress is not None and self.test_progress.lines:
+            self.test_progress.update(self.test_done, "test done", force=True)
+        self.test_progress = None

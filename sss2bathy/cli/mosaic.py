@@ -60,10 +60,10 @@ def mosaic(cfg: DictConfig) -> list[Path]:
     from sss2bathy.survey import Survey
 
     check(cfg)
-    if cfg.get("torch_threads"):
-        import torch
+    if cfg.get("torch_threads"):  # the entry point's start applied the policy's default
+        from sss2bathy.utils.threads import apply_thread_policy
 
-        torch.set_num_threads(int(cfg.torch_threads))
+        apply_thread_policy(int(cfg.torch_threads), announce=False)
     mcfg = MosaicConfig.coerce(mosaic_config(cfg))
     survey = Survey.load(Path(str(cfg.survey)).expanduser())
     grid = None

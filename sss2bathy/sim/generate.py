@@ -42,6 +42,7 @@ from sss2bathy.sim.terrain import (
     nlat_statistics,
 )
 from sss2bathy.survey import BathyGrid, SensorParams, SidescanLine, Survey, mask_reason_counts
+from sss2bathy.utils.progress import log_progress
 
 log = logging.getLogger(__name__)
 
@@ -361,11 +362,12 @@ def generate_survey(config: SyntheticSurveyConfig) -> tuple[Survey, Terrain]:
         with ProcessPoolExecutor(
             workers, mp.get_context("spawn"), initializer=_worker_init, initargs=(terrain, physics)
         ) as pool:
-            lines = list(pool.map(_worker_line, jobs))
+            done = pool.map(_worker_line, jobs)
+            lines = list(log_progress(done, "simulating", len(jobs), unit="lines"))
     else:
         caster, surface = RayCaster(terrain.to_mesh()), TerrainSurface(terrain)
         lines = []
-        for line, i, line_physics in jobs:
+        for line, i, line_physics in log_progress(jobs, "simulating", unit="lines"):
             lines.append(simulate_line(line, i, line_physics or physics, caster, surface))
             log.debug("simulated %s (%d pings)", line.name, len(line.time_s))
     t_lines = time.perf_counter()

@@ -141,3 +141,34 @@ def test_training_experiments_have_the_progress_callback():
             cfg = compose("train", overrides=[f"experiment={name}"])
             target = cfg.callbacks.progress._target_
             assert target == "sss2bathy.callbacks.progress.ProgressLogger", name
+        # callbacks=progress (the map's fold fits): the progress lines and nothing else
+        cfg = compose("train", overrides=["experiment=siren_gt_n2d", "callbacks=progress"])
+        assert list(cfg.callbacks) == ["progress"]
+        assert cfg.callbacks.progress._target_ == "sss2bathy.callbacks.progress.ProgressLogger"
+
+
+def test_a_test_pass_logs_its_batches(caplog, tmp_path):
+    cb = ProgressLogger(every_s=1e-6, when="always")
+    trainer = pl.Trainer(
+        limit_test_batches=4,
+        callbacks=[cb],
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
+    with caplog.at_level(logging.INFO, logger="sss2bathy.progress"):
+        trainer.test(BoringModel())
+    lines = progress_lines(caplog)
+    assert lines[0].startswith("test: 1/4 batches (25.0 %)") and "ETA" in lines[0], lines
+    assert lines[-1].startswith("test done: 4/4 batches (100.0 %)"), lines
+    # on a terminal a test pass is silent
+    caplog.clear()
+    quiet = ProgressLogger(every_s=1e-6, is_terminal=lambda: True)
+    trainer = pl.Trainer(limit_test_batches=2, callbacks=[quiet], logger=False,
+                         enable_progress_bar=False, enable_model_summary=False,
+                         default_root_dir=tmp_path)  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="sss2bathy.progress"):
+        trainer.test(BoringModel())
+    assert progress_lines(caplog) == []

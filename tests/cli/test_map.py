@@ -130,7 +130,7 @@ def test_fold_fits_are_quiet_unless_the_user_says_otherwise():
     assert list(sub.overrides) == [
         "trainer.enable_progress_bar=true",
         "trainer.max_epochs=3",
-        "callbacks=none",
+        "callbacks=progress",
         "+trainer.enable_model_summary=false",
         "+trainer.enable_checkpointing=false",
     ]
