@@ -63,11 +63,15 @@ def config_dir() -> str:
 
 
 def setup_environment() -> None:
-    """Set ``SSS2BATHY_ROOT`` so ``conf/paths`` resolves, and keep glibc from re-faulting the
+    """Set ``SSS2BATHY_ROOT`` so ``conf/paths`` resolves, keep glibc from re-faulting the
     memory of large tensors (:func:`sss2bathy.utils.alloc.tune_allocator`; opt out with
-    ``SSS2BATHY_MALLOC=default``); call before ``@hydra.main``."""
+    ``SSS2BATHY_MALLOC=default``) and put the thread policy's environment defaults in place
+    (:func:`sss2bathy.utils.threads.set_env_defaults`, already done when ``sss2bathy.cli``
+    was imported); call before ``@hydra.main``."""
     from sss2bathy.utils.alloc import tune_allocator
+    from sss2bathy.utils.threads import set_env_defaults
 
+    set_env_defaults()
     os.environ.setdefault("SSS2BATHY_ROOT", str(project_root()))
     if TRACE_FLAG in sys.argv[1:]:
         sys.argv = [a for a in sys.argv if a != TRACE_FLAG]
@@ -296,6 +300,28 @@ def _remove_failed_run_dir(cfg: Any = None) -> None:
         except OSError:
             break
         parent = parent.parent
+
+
+def apply_threads(cfg: Any) -> None:
+    """The thread policy for a run of ``cfg`` (:func:`sss2bathy.utils.threads.
+    apply_thread_policy` with its ``torch_threads``), announced in one INFO line."""
+    from sss2bathy.utils.threads import apply_thread_policy
+
+    value = cfg.get("torch_threads") if isinstance(cfg, DictConfig) else None
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        return  # not a count: the task's validate_config reports it in one line
+    apply_thread_policy(value)
+
+
+def with_thread_policy(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
+    """``task`` starting with :func:`apply_threads` of its config."""
+
+    @functools.wraps(task)
+    def run(cfg: DictConfig) -> Any:
+        apply_threads(cfg)
+        return task(cfg)
+
+    return run
 
 
 def user_errors(
@@ -578,7 +604,8 @@ def hydra_entry(
     overrides are composed once so that a typo'd key or group option is reported in one
     line with a "did you mean", and :func:`startup_checks` (with the entry point's own
     ``check``) run on the composed config. Inside the task, user errors are one line too
-    (:func:`user_errors`). ``aliases`` rename config keys in every message
+    (:func:`user_errors`); the task starts with the thread policy (:func:`apply_threads`).
+    ``aliases`` rename config keys in every message
     (:func:`rename_keys`), for an entry point whose keys sit elsewhere than in the config
     its errors come from.
     """
@@ -587,7 +614,7 @@ def hydra_entry(
     def decorate(task: Callable[[DictConfig], Any]) -> Callable[[], Any]:
         hydra_main = hydra.main(
             version_base="1.3", config_path=config_dir(), config_name=config_name
-        )(user_errors(task, aliases))
+        )(user_errors(with_thread_policy(task), aliases))
         text = help or default_help(config_name, sys.modules[task.__module__].__doc__)
 
         @functools.wraps(task)

@@ -413,7 +413,7 @@ def verdict_folds(cfg: Mapping[str, Any]) -> int:
 
 # quieter fold fits (unless the user's overrides set these keys)
 FOLD_OVERRIDES = (
-    "callbacks=none",
+    "callbacks=progress",  # progress lines in a log file, no checkpoints or curves
     "trainer.enable_progress_bar=false",
     "+trainer.enable_model_summary=false",
     # a fold's fit is scored, not resumed: no checkpoints in the map's folder

@@ -308,10 +308,10 @@ def _fit(cfg: DictConfig, run_dir: Path | None, on_checked: Callable[[], None] |
 
     from sss2bathy.cli.instantiate import resolve_ckpt_path
 
-    if cfg.get("torch_threads"):
-        import torch
+    if cfg.get("torch_threads"):  # the entry point's start applied the policy's default
+        from sss2bathy.utils.threads import apply_thread_policy
 
-        torch.set_num_threads(int(cfg.torch_threads))
+        apply_thread_policy(int(cfg.torch_threads), announce=False)
     # seeds torch, numpy, Python and (via PL_SEED_WORKERS) data-loader workers; the data
     # modules draw batches from their own generators seeded by data.seed (= seed)
     pl.seed_everything(cfg.seed, workers=True)
