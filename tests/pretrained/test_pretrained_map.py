@@ -117,3 +117,21 @@ def test_the_fit_reads_the_shipped_model_before_any_data(exported, tmp_path, mon
         ValueError, match=r"data.cnn_checkpoint: .*normal_cnn.json: windows.overlap"
     ):
         check_checkpoints(train_cfg, None, None)
+
+
+@pytest.mark.parametrize("experiment", ["siren_cnn_n2d", "d2_siren_cnn_n2d", "d3_siren_cnn_n2d"])
+def test_the_pretrained_experiments_take_the_shipped_cnn(
+    exported, tmp_path, monkeypatch, experiment
+):
+    _ship(exported, tmp_path / "pkg")
+    monkeypatch.setattr(cnn_normals, "PRETRAINED_DIR", tmp_path / "pkg")
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        base = compose("train", overrides=[f"experiment={experiment}", "scale=tiny"])
+        cfg = compose("train", overrides=[f"experiment={experiment}_pretrained", "scale=tiny"])
+    assert cfg.data.cnn_checkpoint == "pretrained" and cfg.data.normals == "cnn"
+    assert cfg.task_name == f"{experiment}_pretrained"
+    # everything else is the experiment's own (its survey, splits, SIREN)
+    assert cfg.data.survey.name == base.data.survey.name
+    assert cfg.data.sidescan_split == base.data.sidescan_split
+    assert cfg.model.siren == base.model.siren
+    check_checkpoints(cfg, None, None)
