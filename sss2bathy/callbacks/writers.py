@@ -263,7 +263,9 @@ def cnn_checkpoint_of(datamodule: Any) -> Path | None:
         from sss2bathy.data.cnn_normals import latest_checkpoint
 
         return Path(latest_checkpoint(datamodule.cnn_runs_dir, datamodule.cnn_scale))
-    return Path(str(ckpt))
+    from sss2bathy.data.cnn_normals import resolve_model_path  # "pretrained": the shipped CNN
+
+    return resolve_model_path(ckpt)
 
 
 def map_provenance(trainer: pl.Trainer) -> dict[str, str]:

@@ -7,11 +7,13 @@ import json
 import logging
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from sss2bathy.callbacks.writers import cnn_checkpoint_of
 from sss2bathy.cli.map import (
     compose_train_config,
     log_cnn_choice,
@@ -135,3 +137,6 @@ def test_the_pretrained_experiments_take_the_shipped_cnn(
     assert cfg.data.sidescan_split == base.data.sidescan_split
     assert cfg.model.siren == base.model.siren
     check_checkpoints(cfg, None, None)
+    # the map's provenance names the shipped file (its SHA-256 goes into map.tif)
+    dm = SimpleNamespace(normals="cnn", cnn_checkpoint="pretrained")
+    assert cnn_checkpoint_of(dm) == tmp_path / "pkg" / "normal_cnn.safetensors"
