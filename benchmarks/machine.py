@@ -11,6 +11,8 @@ from typing import Any
 
 import torch
 
+from sss2bathy.utils.machine import cpu_model
+
 
 def cpu_clock() -> tuple[float, float, float] | None:
     """(busy CPU seconds of the machine, of this process, wall time); Linux only."""
@@ -35,16 +37,8 @@ def other_load(start: tuple | None, end: tuple | None) -> float | None:
 
 def machine_info(device: torch.device) -> dict[str, Any]:
     """CPU, core count, torch version and threads, device (and GPU name), Python."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     info: dict[str, Any] = {
-        "cpu": cpu,
+        "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),

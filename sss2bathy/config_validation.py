@@ -26,12 +26,13 @@ modules' ``setup`` and name the config key too.
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Callable
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from sss2bathy.utils.checks import is_integer, is_number
 
 
 class ConfigError(ValueError):
@@ -39,18 +40,19 @@ class ConfigError(ValueError):
 
 
 def _num(pred: Callable[[float], bool]) -> Callable[[Any], bool]:
-    def check(v: Any) -> bool:
-        return (
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and pred(v)
-        )
+    """A finite number (:func:`~sss2bathy.utils.checks.is_number`) with ``pred``."""
+    return lambda v: is_number(v) and pred(v)
 
-    return check
+
+def _int(minimum: int) -> Callable[[Any], bool]:
+    """An integer (:func:`~sss2bathy.utils.checks.is_integer`) ``>= minimum``."""
+    return lambda v: is_integer(v) and v >= minimum
 
 
 positive = _num(lambda v: v > 0)
 non_negative = _num(lambda v: v >= 0)
-positive_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 0  # noqa: E731
-non_negative_int = lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0  # noqa: E731
+positive_int = _int(1)
+non_negative_int = _int(0)
 boolean = lambda v: isinstance(v, bool)  # noqa: E731
 
 
@@ -78,13 +80,9 @@ def _choices(module: str, name: str) -> tuple[Callable[[Any], bool], _OneOf]:
     return check, check
 
 
-def _gamma(v: Any) -> bool:
-    return _num(lambda x: 0 < x <= 1)(v)
-
-
 RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     # top-level run keys (conf/train.yaml): no constructor sees them
-    ("seed", lambda v: isinstance(v, int) and v >= 0, "a non-negative integer"),
+    ("seed", non_negative_int, "a non-negative integer"),
     ("torch_threads", positive_int, "a positive integer or null"),
     ("deterministic", boolean, "true or false"),
     ("guard.max_consecutive_nonfinite", positive_int, "a positive integer"),
@@ -104,7 +102,7 @@ RULES: list[tuple[str, Callable[[Any], bool], str | _OneOf]] = [
     ("callbacks.epoch_checkpoint.every_n_epochs", non_negative_int, "an integer >= 0"),
     ("callbacks.step_checkpoint.every_n_train_steps", non_negative_int, "an integer >= 0"),
     ("model.optimizer.lr", positive, "a positive learning rate"),
-    ("model.scheduler.gamma", _gamma, "a decay factor in (0, 1]"),
+    ("model.scheduler.gamma", _num(lambda x: 0 < x <= 1), "a decay factor in (0, 1]"),
 ]
 
 

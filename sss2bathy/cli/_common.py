@@ -645,15 +645,17 @@ def hydra_entry(
     return decorate
 
 
-def apply_extras(cfg: DictConfig, print_config: bool = True) -> None:
+def apply_extras(cfg: DictConfig, print_config: bool = True, validate: bool = True) -> None:
     """Validate the composed config (before any dump), then apply ``extras``.
 
     ``print_config=False`` leaves the dump (``extras.print_config``) to the caller's
     :func:`log_config`, for an entry point whose constructors check more before it
-    (``sss2bathy-train`` instantiates its run first)."""
+    (``sss2bathy-train`` instantiates its run first); ``validate=False`` leaves the check to
+    :func:`sss2bathy.cli.train.fit`, which runs it next (once per run)."""
     from sss2bathy.config_validation import validate_config
 
-    validate_config(cfg)
+    if validate:
+        validate_config(cfg)
     extras = cfg.get("extras") or {}
     if extras.get("ignore_warnings"):
         warnings.filterwarnings("ignore", category=UserWarning)

@@ -654,8 +654,9 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     if verdict is not None:
         with open_dict(train_cfg):
             train_cfg.data.holdout.fraction = 0.0
-    # the config goes to run_dir/config.yaml once every constructor's check passed
-    apply_extras(train_cfg, print_config=False)
+    # the config goes to run_dir/config.yaml once every constructor's check passed; fit
+    # validates it (once)
+    apply_extras(train_cfg, print_config=False, validate=False)
     result = fit(train_cfg, run_dir, on_checked=lambda: log_config(train_cfg, run_dir))
     metrics = {}
     for key, value in result.metrics.items():

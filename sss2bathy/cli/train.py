@@ -370,8 +370,9 @@ setup_environment()
 def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
-    # the config dump waits for the constructors' checks: a bad value is one line before it
-    apply_extras(cfg, print_config=False)
+    # the config dump waits for the constructors' checks: a bad value is one line before it;
+    # fit validates the config (once)
+    apply_extras(cfg, print_config=False, validate=False)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     result = fit(cfg, run_dir, on_checked=lambda: log_config(cfg))
     # evaluation-only runs (train=false) have no optimised metric to return

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -46,6 +46,7 @@ from sss2bathy.survey import (
     MASK_VALID,
     MASK_WATER_COLUMN,
 )
+from sss2bathy.utils.checks import coerce_config
 
 #: CNN input channels :func:`input_channels` can build; the first is an intensity channel
 #: (:data:`INTENSITY_CHANNELS`).
@@ -98,21 +99,7 @@ class SonarMaskConfig:
     @classmethod
     def coerce(cls, cfg: SonarMaskConfig | Mapping[str, Any] | None) -> SonarMaskConfig:
         """A config from ``None`` (defaults), a plain dict / DictConfig, or a config."""
-        if cfg is None:
-            return cls()
-        if isinstance(cfg, SonarMaskConfig):
-            return cfg
-        if not isinstance(cfg, Mapping):
-            raise ValueError(
-                f"sonar_mask: expected a mapping or SonarMaskConfig, found {type(cfg).__name__}"
-            )
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - known)
-        if unknown:
-            raise ValueError(
-                f"sonar_mask: unknown keys {unknown}; expected some of {sorted(known)}"
-            )
-        return cls(**{str(k): v for k, v in cfg.items()})
+        return coerce_config(cls, cfg, "sonar_mask")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values (hparams, cache keys)."""

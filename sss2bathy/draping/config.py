@@ -3,24 +3,18 @@
 from __future__ import annotations
 
 import math
-import os
 import sys
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
+
+from sss2bathy.utils.checks import coerce_config
+from sss2bathy.utils.threads import available_cores
 
 ENGINES = ("auto", "embree", "triangle")
 # ``threads: auto``: the cores this process may run on, at most this many (a line has
 # few chunks, ~32 at the default chunk size for 1000 pings, and other stages share cores)
 AUTO_THREADS_MAX = 4
-
-
-def available_cores() -> int:
-    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # no affinity API (macOS, Windows)
-        return max(1, os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
@@ -114,19 +108,7 @@ class DrapeConfig:
     @classmethod
     def coerce(cls, cfg: DrapeConfig | Mapping[str, Any] | None) -> DrapeConfig:
         """A config from ``None`` (defaults), a plain dict / DictConfig, or a config."""
-        if cfg is None:
-            return cls()
-        if isinstance(cfg, DrapeConfig):
-            return cfg
-        if not isinstance(cfg, Mapping):
-            raise ValueError(
-                f"drape: expected a mapping or DrapeConfig, found {type(cfg).__name__}"
-            )
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - known)
-        if unknown:
-            raise ValueError(f"drape: unknown keys {unknown}; expected some of {sorted(known)}")
-        return cls(**dict(cfg.items()))
+        return coerce_config(cls, cfg, "drape")
 
     def cache_dict(self) -> dict[str, Any]:
         """The fields that change results (excludes chunking, threads and the intersector

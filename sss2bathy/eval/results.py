@@ -22,7 +22,6 @@ import io
 import json
 import math
 import os
-import platform
 import shutil
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
@@ -32,6 +31,7 @@ from typing import Any
 from sss2bathy.eval.cnn_table import cnn_table_markdown
 from sss2bathy.eval.paper_numbers import CNN_TABLE, PAPER_LABEL, SIREN_D1_TABLE, SIREN_D2_TABLE
 from sss2bathy.utils.atomic import atomic_write_text
+from sss2bathy.utils.machine import cpu_model
 
 RESULTS_JSON = "results.json"
 RESULTS_MD = "results.md"
@@ -102,15 +102,7 @@ def results_table(
 # ------------------------------------------------------------------------------ header
 def machine() -> str:
     """The CPU model and core count of this machine (no host name)."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} cores"
+    return f"{cpu_model()}, {os.cpu_count()} cores"
 
 
 def results_header(runs: Sequence[Any], stage: Mapping[str, Any] | None) -> dict[str, Any]:

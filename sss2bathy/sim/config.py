@@ -2,7 +2,10 @@
 
 The YAML presets (``conf/data/survey/synthetic_d*.yaml``) spell every key out; the
 defaults here are those of the Dataset-I analogue at paper scale. Degrees are used in the
-configs only and are converted to radians here. Every bad value or unknown key raises a
+configs only and are converted to radians here. Each field declares its config key,
+default, bounds and unit once (:func:`~sss2bathy.utils.checks.setting`), and one generic
+reader reads them (:func:`~sss2bathy.utils.checks.read_fields`); the ``_read_*`` functions
+add only what spans fields or sections. Every bad value or unknown key raises a
 ``ValueError`` naming the full key (``data.survey.plan.line_spacing_m``), what was expected
 and what was found.
 """
@@ -18,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from sss2bathy.utils.atomic import stable_hash
+from sss2bathy.utils.checks import ConfigReader, config_error, read_fields, setting
 
 ROOT = "data.survey"
 
@@ -28,154 +32,32 @@ GENERATOR_VERSION = 1
 UNHASHED_KEYS = ("workers",)
 
 
-def config_error(path: str, expected: str, found: Any) -> ValueError:
-    """The one error format of this package: ``<key>: expected <what>, found <value>``."""
-    return ValueError(f"{path}: expected {expected}, found {found!r}")
-
-
-class _Reader:
-    """Reads one config section key by key and rejects keys nobody asked for."""
-
-    def __init__(self, data: Any, path: str) -> None:
-        if data is None:
-            data = {}
-        if not isinstance(data, Mapping):
-            raise config_error(path, "a mapping", data)
-        self.data, self.path, self.used = dict(data), path, set()
-
-    def _get(self, key: str, default: Any) -> tuple[str, Any]:
-        self.used.add(key)
-        return f"{self.path}.{key}", self.data.get(key, default)
-
-    def number(
-        self,
-        key: str,
-        default: float,
-        *,
-        gt: float | None = None,
-        ge: float | None = None,
-        lt: float | None = None,
-        le: float | None = None,
-    ) -> float:
-        path, value = self._get(key, default)
-        return _check_number(path, value, gt=gt, ge=ge, lt=lt, le=le)
-
-    def integer(self, key: str, default: int, *, ge: int | None = None) -> int:
-        path, value = self._get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
-            raise config_error(path, "an integer", value)
-        if ge is not None and value < ge:
-            raise config_error(path, f"an integer >= {ge}", value)
-        return int(value)
-
-    def optional_number(self, key: str, default: float | None, *, gt: float) -> float | None:
-        path, value = self._get(key, default)
-        if value is None:
-            return None
-        return _check_number(path, value, gt=gt)
-
-    def pair(
-        self,
-        key: str,
-        default: Sequence[float],
-        *,
-        gt: float | None = None,
-        le: float | None = None,
-        ordered: bool = True,
-    ) -> tuple[float, float]:
-        """Two numbers; ``[lo, hi]`` with ``lo <= hi`` when ``ordered``."""
-        path, value = self._get(key, default)
-        if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
-            raise config_error(path, "a [low, high] pair", value)
-        lo = _check_number(f"{path}[0]", value[0], gt=gt, le=le)
-        hi = _check_number(f"{path}[1]", value[1], gt=gt, le=le)
-        if ordered and lo > hi:
-            raise config_error(path, "low <= high", list(value))
-        return lo, hi
-
-    def numbers(self, key: str, default: Sequence[float], *, ge: float | None = None) -> tuple:
-        path, value = self._get(key, default)
-        if not isinstance(value, Sequence) or isinstance(value, str):
-            raise config_error(path, "a list of numbers", value)
-        return tuple(_check_number(f"{path}[{i}]", v, ge=ge) for i, v in enumerate(value))
-
-    def choice(self, key: str, default: str, choices: Sequence[str]) -> str:
-        path, value = self._get(key, default)
-        if value not in choices:
-            raise config_error(path, f"one of {list(choices)}", value)
-        return str(value)
-
-    def text(self, key: str, default: str | None) -> str | None:
-        path, value = self._get(key, default)
-        if value is not None and not isinstance(value, str):
-            raise config_error(path, "a string", value)
-        return value
-
-    def section(self, key: str) -> _Reader:
-        path, value = self._get(key, None)
-        return _Reader(value, path)
-
-    def raw(self, key: str) -> Any:
-        return self._get(key, None)[1]
-
-    def done(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise ValueError(
-                f"{self.path}: unknown key(s) {unknown}; expected some of {sorted(self.used)}"
-            )
-
-
-def _check_number(
-    path: str,
-    value: Any,
-    *,
-    gt: float | None = None,
-    ge: float | None = None,
-    lt: float | None = None,
-    le: float | None = None,
-) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise config_error(path, "a finite number", value)
-    bounds = []
-    if gt is not None and not value > gt:
-        bounds.append(f"> {gt}")
-    if ge is not None and not value >= ge:
-        bounds.append(f">= {ge}")
-    if lt is not None and not value < lt:
-        bounds.append(f"< {lt}")
-    if le is not None and not value <= le:
-        bounds.append(f"<= {le}")
-    if bounds:
-        limits = [f"> {gt}" if gt is not None else None, f">= {ge}" if ge is not None else None]
-        limits += [f"< {lt}" if lt is not None else None, f"<= {le}" if le is not None else None]
-        raise config_error(path, "a number " + " and ".join(x for x in limits if x), value)
-    return float(value)
-
-
 # ---------------------------------------------------------------------------- terrain
 @dataclass(frozen=True)
 class RidgeParams:
     """Rock ridges: random meandering polylines with a rounded cross-section."""
 
-    density_per_ha: float = 0.6
-    height_m: tuple[float, float] = (0.8, 2.5)
-    width_m: tuple[float, float] = (3.0, 7.0)
-    length_m: tuple[float, float] = (25.0, 90.0)
-    meander_rad: float = math.radians(8.0)
+    density_per_ha: float = setting(0.6, ge=0.0)
+    height_m: tuple[float, float] = setting((0.8, 2.5), kind="pair", gt=0.0)
+    width_m: tuple[float, float] = setting((3.0, 7.0), kind="pair", gt=0.0)
+    length_m: tuple[float, float] = setting((25.0, 90.0), kind="pair", gt=0.0)
+    meander_rad: float = setting(math.radians(8.0), "meander_deg", unit="deg", ge=0.0, le=90.0)
 
 
 @dataclass(frozen=True)
 class BoulderParams:
     """Boulders: clustered ellipsoidal caps with a power-law size distribution."""
 
-    density_per_ha: float = 180.0
-    diameter_m: tuple[float, float] = (0.3, 3.0)
-    size_exponent: float = 2.3
-    height_ratio: tuple[float, float] = (0.4, 0.7)
-    clustering: float = 1.2
-    cluster_scale_m: float = 25.0
-    ridge_affinity: float = 2.0
+    density_per_ha: float = setting(180.0, ge=0.0)
+    diameter_m: tuple[float, float] = setting((0.3, 3.0), kind="pair", gt=0.0)
+    size_exponent: float = setting(2.3, gt=0.0)
+    height_ratio: tuple[float, float] = setting((0.4, 0.7), kind="pair", gt=0.0, le=1.0)
+    clustering: float = setting(1.2, ge=0.0)
+    cluster_scale_m: float = setting(25.0, gt=0.0)
+    ridge_affinity: float = setting(2.0, ge=0.0)
+
+
+OBJECT_KINDS = ("box", "hull")
 
 
 @dataclass(frozen=True)
@@ -191,41 +73,27 @@ class ObjectParams:
     ``material`` (None: the boulder material).
     """
 
-    kind: str
-    x_m: float
-    y_m: float
-    length_m: float
-    beam_m: float
-    height_m: float
-    heading_rad: float = 0.0
-    bow_fraction: float = 0.3
-    material: str | None = None
+    kind: str = setting("hull", kind="choice", choices=OBJECT_KINDS)
+    x_m: float = setting(0.0)
+    y_m: float = setting(0.0)
+    length_m: float = setting(10.0, gt=0.0)
+    beam_m: float = setting(4.0, gt=0.0)
+    height_m: float = setting(2.0, gt=0.0)
+    heading_rad: float = setting(0.0, "heading_deg", unit="deg")
+    bow_fraction: float = setting(0.3, ge=0.0, lt=1.0)
+    material: str | None = setting(None, kind="text")
 
 
-OBJECT_KINDS = ("box", "hull")
-
-
-def _read_objects(r: _Reader) -> tuple[ObjectParams, ...]:
-    path, value = r._get("objects", None)
+def _read_objects(r: ConfigReader) -> tuple[ObjectParams, ...]:
+    path, value = r.get("objects", None)
     if value is None:
         return ()
     if not isinstance(value, Sequence) or isinstance(value, str | Mapping):
         raise config_error(path, "a list of objects ({kind, x_m, y_m, length_m, ...})", value)
     out = []
     for i, spec in enumerate(value):
-        o = _Reader(spec, f"{path}[{i}]")
-        kind = o.choice("kind", "hull", OBJECT_KINDS)
-        obj = ObjectParams(
-            kind=kind,
-            x_m=o.number("x_m", 0.0),
-            y_m=o.number("y_m", 0.0),
-            length_m=o.number("length_m", 10.0, gt=0.0),
-            beam_m=o.number("beam_m", 4.0, gt=0.0),
-            height_m=o.number("height_m", 2.0, gt=0.0),
-            heading_rad=math.radians(o.number("heading_deg", 0.0)),
-            bow_fraction=o.number("bow_fraction", 0.3, ge=0.0, lt=1.0),
-            material=o.text("material", None),
-        )
+        o = ConfigReader(spec, f"{path}[{i}]")
+        obj = ObjectParams(**read_fields(o, ObjectParams))
         o.done()
         out.append(obj)
     return tuple(out)
@@ -252,17 +120,17 @@ class GridTerrainParams:
     """
 
     path: str
-    band: int = 1
-    cell_m: float | None = None
-    source_crs: str | None = None
-    z_positive: str = "up"
+    band: int = setting(1, "grid_band", kind="integer", ge=1)
+    cell_m: float | None = setting(None, "grid_cell_m", kind="optional_number", gt=0.0)
+    source_crs: str | None = setting(None, "grid_crs", kind="text")
+    z_positive: str = setting("up", "grid_z_positive", kind="choice", choices=("up", "down"))
     spike_threshold_m: float | None = None
     spike_window_cells: int = 5
-    fill_max_area_m2: float = 25.0
+    fill_max_area_m2: float = setting(25.0, ge=0.0)
     detail: bool = False
-    detail_cell_m: float = 0.25
+    detail_cell_m: float = setting(0.25, gt=0.0)
     materials_raster: str | None = None
-    materials_kind: str = "classes"
+    materials_kind: str = setting("classes", kind="choice", choices=("classes", "backscatter"))
 
 
 def file_digest(path: str | Path) -> str:
@@ -284,7 +152,7 @@ def _existing_file(path: str, value: Any, what: str, suffixes: Sequence[str]) ->
     return value
 
 
-def _read_grid_terrain(r: _Reader, grid_path: str) -> GridTerrainParams:
+def _read_grid_terrain(r: ConfigReader, grid_path: str) -> GridTerrainParams:
     path = _existing_file(
         grid_path,
         r.raw("grid"),
@@ -293,40 +161,25 @@ def _read_grid_terrain(r: _Reader, grid_path: str) -> GridTerrainParams:
         GRID_SUFFIXES,
     )
     spikes = r.section("spike_filter")
-    enabled = spikes.raw("enabled")
-    if enabled is None:
-        enabled = False
-    if not isinstance(enabled, bool):
-        raise config_error(f"{spikes.path}.enabled", "true or false", enabled)
+    enabled = spikes.boolean("enabled")
     threshold = spikes.number("threshold_m", 1.0, gt=0.0)
     window = spikes.integer("window_cells", 5, ge=3)
     if window % 2 == 0:
         raise config_error(f"{spikes.path}.window_cells", "an odd integer >= 3", window)
     spikes.done()
-    detail = r.raw("detail")
-    if detail is None:
-        detail = False
-    if not isinstance(detail, bool):
-        raise config_error(f"{r.path}.detail", "true or false", detail)
+    detail = r.boolean("detail")
     raster = r.raw("materials_raster")
     if raster is not None:
         raster = _existing_file(
             f"{r.path}.materials_raster", raster, "materials raster", GRID_SUFFIXES
         )
-    crs = r.text("grid_crs", None)
     return GridTerrainParams(
         path=path,
-        band=r.integer("grid_band", 1, ge=1),
-        cell_m=r.optional_number("grid_cell_m", None, gt=0.0),
-        source_crs=crs,
-        z_positive=r.choice("grid_z_positive", "up", ("up", "down")),
         spike_threshold_m=threshold if enabled else None,
         spike_window_cells=window,
-        fill_max_area_m2=r.number("fill_max_area_m2", 25.0, ge=0.0),
         detail=detail,
-        detail_cell_m=r.number("detail_cell_m", 0.25, gt=0.0),
         materials_raster=raster,
-        materials_kind=r.choice("materials_kind", "classes", ("classes", "backscatter")),
+        **read_fields(r, GridTerrainParams),
     )
 
 
@@ -342,17 +195,25 @@ class TerrainParams:
     is exactly what it was before objects existed.
     """
 
-    size_m: tuple[float, float] = (350.0, 300.0)
-    cell_m: float = 0.5
-    mean_depth_m: float = 17.0
-    regional_slope_rad: float = math.radians(2.2)
-    regional_slope_azimuth_rad: float = math.radians(30.0)
-    relief_wavelengths_m: tuple[float, ...] = (160.0, 80.0, 40.0, 20.0, 8.0, 3.0)
-    relief_amplitudes_m: tuple[float, ...] = (2.0, 1.4, 0.7, 0.3, 0.08, 0.03)
+    size_m: tuple[float, float] = setting((350.0, 300.0), kind="pair", gt=0.0, ordered=False)
+    cell_m: float = setting(0.5, gt=0.0)
+    mean_depth_m: float = setting(17.0, gt=0.0)
+    regional_slope_rad: float = setting(
+        math.radians(2.2), "regional_slope_deg", unit="deg", ge=0.0, lt=45.0
+    )
+    regional_slope_azimuth_rad: float = setting(
+        math.radians(30.0), "regional_slope_azimuth_deg", unit="deg"
+    )
+    relief_wavelengths_m: tuple[float, ...] = setting(
+        (160.0, 80.0, 40.0, 20.0, 8.0, 3.0), kind="numbers", ge=0.0
+    )
+    relief_amplitudes_m: tuple[float, ...] = setting(
+        (2.0, 1.4, 0.7, 0.3, 0.08, 0.03), kind="numbers", ge=0.0
+    )
     ridges: RidgeParams = RidgeParams()
     boulders: BoulderParams = BoulderParams()
-    texture_cell_m: float = 0.25
-    mbes_noise_m: float = 0.02
+    texture_cell_m: float = setting(0.25, gt=0.0)
+    mbes_noise_m: float = setting(0.02, ge=0.0)
     grid: GridTerrainParams | None = None
     objects: tuple[ObjectParams, ...] = ()
 
@@ -369,7 +230,7 @@ _GRID_ONLY = (
 )  # fmt: skip
 
 
-def _read_terrain(r: _Reader) -> TerrainParams:
+def _read_terrain(r: ConfigReader) -> TerrainParams:
     if r.data.get("grid") is not None:
         given = sorted(k for k in _PROCEDURAL_ONLY if k in r.data)
         if given:
@@ -387,52 +248,21 @@ def _read_terrain(r: _Reader) -> TerrainParams:
                 f"{r.path}.grid: PATH with them, found no grid"
             )
         grid = None
-    size = r.pair("size_m", (350.0, 300.0), gt=0.0, ordered=False)
-    cell = r.number("cell_m", 0.5, gt=0.0)
+    values = read_fields(r, TerrainParams)
+    size, cell = values["size_m"], values["cell_m"]
     if grid is None and min(size) < 8 * cell:
         raise config_error(f"{r.path}.size_m", f"at least 8 cells ({8 * cell} m) per side", size)
-    wl = r.numbers("relief_wavelengths_m", TerrainParams.relief_wavelengths_m, ge=0.0)
-    amp = r.numbers("relief_amplitudes_m", TerrainParams.relief_amplitudes_m, ge=0.0)
+    wl, amp = values["relief_wavelengths_m"], values["relief_amplitudes_m"]
     if len(wl) != len(amp):
         raise config_error(
             f"{r.path}.relief_amplitudes_m", f"{len(wl)} values (one per wavelength)", list(amp)
         )
     if any(w <= 0 for w in wl):
         raise config_error(f"{r.path}.relief_wavelengths_m", "positive wavelengths", list(wl))
-    rr = r.section("ridges")
-    ridges = RidgeParams(
-        density_per_ha=rr.number("density_per_ha", 0.6, ge=0.0),
-        height_m=rr.pair("height_m", (0.8, 2.5), gt=0.0),
-        width_m=rr.pair("width_m", (3.0, 7.0), gt=0.0),
-        length_m=rr.pair("length_m", (25.0, 90.0), gt=0.0),
-        meander_rad=math.radians(rr.number("meander_deg", 8.0, ge=0.0, le=90.0)),
-    )
-    rr.done()
-    br = r.section("boulders")
-    boulders = BoulderParams(
-        density_per_ha=br.number("density_per_ha", 180.0, ge=0.0),
-        diameter_m=br.pair("diameter_m", (0.3, 3.0), gt=0.0),
-        size_exponent=br.number("size_exponent", 2.3, gt=0.0),
-        height_ratio=br.pair("height_ratio", (0.4, 0.7), gt=0.0, le=1.0),
-        clustering=br.number("clustering", 1.2, ge=0.0),
-        cluster_scale_m=br.number("cluster_scale_m", 25.0, gt=0.0),
-        ridge_affinity=br.number("ridge_affinity", 2.0, ge=0.0),
-    )
-    br.done()
+    ridges = RidgeParams(**read_fields(r.section("ridges"), RidgeParams))
+    boulders = BoulderParams(**read_fields(r.section("boulders"), BoulderParams))
     params = TerrainParams(
-        size_m=size,
-        cell_m=cell,
-        mean_depth_m=r.number("mean_depth_m", 17.0, gt=0.0),
-        regional_slope_rad=math.radians(r.number("regional_slope_deg", 2.2, ge=0.0, lt=45.0)),
-        regional_slope_azimuth_rad=math.radians(r.number("regional_slope_azimuth_deg", 30.0)),
-        relief_wavelengths_m=wl,
-        relief_amplitudes_m=amp,
-        ridges=ridges,
-        boulders=boulders,
-        texture_cell_m=r.number("texture_cell_m", 0.25, gt=0.0),
-        mbes_noise_m=r.number("mbes_noise_m", 0.02, ge=0.0),
-        grid=grid,
-        objects=_read_objects(r),
+        **values, ridges=ridges, boulders=boulders, grid=grid, objects=_read_objects(r)
     )
     if grid is not None:  # 0 = given by the grid
         params = replace(
@@ -454,15 +284,17 @@ class MaterialClass:
     """
 
     name: str
-    fraction: float
-    mu: float
-    exponent: float
-    specular: float
-    specular_width_rad: float
-    texture_contrast: float
-    texture_scale_m: float
-    ripple_wavelength_m: float
-    ripple_contrast: float
+    fraction: float = setting(0.25, ge=0.0, le=1.0)
+    mu: float = setting(1.0, gt=0.0)
+    exponent: float = setting(2.0, ge=1.0)
+    specular: float = setting(0.0, ge=0.0)
+    specular_width_rad: float = setting(
+        math.radians(6.0), "specular_width_deg", unit="deg", gt=0.0, lt=90.0
+    )
+    texture_contrast: float = setting(0.2, ge=0.0)
+    texture_scale_m: float = setting(1.0, gt=0.0)
+    ripple_wavelength_m: float = setting(0.0, ge=0.0)
+    ripple_contrast: float = setting(0.0, ge=0.0)
 
 
 _MATERIAL_DEFAULTS: dict[str, dict[str, float]] = {
@@ -512,8 +344,8 @@ class MaterialParams:
     """The material map: classes (ordered: low -> high values of the map field)."""
 
     classes: tuple[MaterialClass, ...]
-    map_scale_m: float = 30.0
-    depth_coupling: float = 0.6
+    map_scale_m: float = setting(30.0, gt=0.0)
+    depth_coupling: float = setting(0.6, ge=0.0)
     boulder_material: str = "rock"
     reference_material: str = "sand"
 
@@ -525,7 +357,7 @@ class MaterialParams:
         return self.names.index(name)
 
 
-def _read_materials(r: _Reader) -> MaterialParams:
+def _read_materials(r: ConfigReader) -> MaterialParams:
     classes_cfg = r.raw("classes")
     if classes_cfg is None:
         classes_cfg = _MATERIAL_DEFAULTS
@@ -535,23 +367,8 @@ def _read_materials(r: _Reader) -> MaterialParams:
         )
     classes = []
     for name, spec in classes_cfg.items():
-        c = _Reader(spec, f"{r.path}.classes.{name}")
-        classes.append(
-            MaterialClass(
-                name=str(name),
-                fraction=c.number("fraction", 0.25, ge=0.0, le=1.0),
-                mu=c.number("mu", 1.0, gt=0.0),
-                exponent=c.number("exponent", 2.0, ge=1.0),
-                specular=c.number("specular", 0.0, ge=0.0),
-                specular_width_rad=math.radians(
-                    c.number("specular_width_deg", 6.0, gt=0.0, lt=90.0)
-                ),
-                texture_contrast=c.number("texture_contrast", 0.2, ge=0.0),
-                texture_scale_m=c.number("texture_scale_m", 1.0, gt=0.0),
-                ripple_wavelength_m=c.number("ripple_wavelength_m", 0.0, ge=0.0),
-                ripple_contrast=c.number("ripple_contrast", 0.0, ge=0.0),
-            )
-        )
+        c = ConfigReader(spec, f"{r.path}.classes.{name}")
+        classes.append(MaterialClass(name=str(name), **read_fields(c, MaterialClass)))
         c.done()
     total = sum(c.fraction for c in classes)
     if not math.isclose(total, 1.0, abs_tol=1e-6):
@@ -559,8 +376,7 @@ def _read_materials(r: _Reader) -> MaterialParams:
     names = [c.name for c in classes]
     params = MaterialParams(
         classes=tuple(classes),
-        map_scale_m=r.number("map_scale_m", 30.0, gt=0.0),
-        depth_coupling=r.number("depth_coupling", 0.6, ge=0.0),
+        **read_fields(r, MaterialParams),
         boulder_material=r.choice(
             "boulder_material", "rock" if "rock" in names else names[-1], names
         ),
@@ -589,66 +405,35 @@ class PlanParams:
     footprint's long axis.
     """
 
-    n_train: int = 45
-    n_test: int = 12
-    train_cross_fraction: float = 0.5
-    main_axis: str = "x"
-    line_spacing_m: float | None = None
-    margin_m: float = 2.0
-    speed_mps: float = 2.0
-    ping_rate_hz: float = 12.0
-    turn_time_s: float = 60.0
-    mount: str = "hull"
-    sonar_depth_m: float = 1.5
-    altitude_m: float = 10.0
-    altitude_smoothing_m: float = 15.0
-    min_altitude_m: float = 2.0
-    roll_rad: float = math.radians(1.0)
-    pitch_rad: float = math.radians(0.5)
-    yaw_rad: float = math.radians(0.5)
-    motion_period_s: float = 6.0
-    nav_position_noise_m: float = 0.0
-    nav_attitude_noise_rad: float = 0.0
-    nav_noise_correlation_s: float = 10.0
-    heading_rad: float | None = None
-    min_line_m: float = 20.0
-
-
-def _optional_radians(r: _Reader, key: str) -> float | None:
-    path, value = r._get(key, None)
-    return None if value is None else math.radians(_check_number(path, value))
-
-
-def _read_plan(r: _Reader) -> PlanParams:
-    motion = r.section("motion")
-    nav = r.section("nav_noise")
-    params = PlanParams(
-        n_train=r.integer("n_train", 45, ge=0),
-        n_test=r.integer("n_test", 12, ge=0),
-        train_cross_fraction=r.number("train_cross_fraction", 0.5, ge=0.0, le=1.0),
-        main_axis=r.choice("main_axis", "x", ("x", "y")),
-        line_spacing_m=r.optional_number("line_spacing_m", None, gt=0.0),
-        margin_m=r.number("margin_m", 2.0, ge=0.0),
-        speed_mps=r.number("speed_mps", 2.0, gt=0.0),
-        ping_rate_hz=r.number("ping_rate_hz", 12.0, gt=0.0),
-        turn_time_s=r.number("turn_time_s", 60.0, ge=0.0),
-        mount=r.choice("mount", "hull", ("hull", "auv")),
-        sonar_depth_m=r.number("sonar_depth_m", 1.5, ge=0.0),
-        altitude_m=r.number("altitude_m", 10.0, gt=0.0),
-        altitude_smoothing_m=r.number("altitude_smoothing_m", 15.0, ge=0.0),
-        min_altitude_m=r.number("min_altitude_m", 2.0, gt=0.0),
-        roll_rad=math.radians(motion.number("roll_deg", 1.0, ge=0.0, lt=30.0)),
-        pitch_rad=math.radians(motion.number("pitch_deg", 0.5, ge=0.0, lt=30.0)),
-        yaw_rad=math.radians(motion.number("yaw_deg", 0.5, ge=0.0, lt=30.0)),
-        motion_period_s=motion.number("period_s", 6.0, gt=0.0),
-        nav_position_noise_m=nav.number("position_m", 0.0, ge=0.0),
-        nav_attitude_noise_rad=math.radians(nav.number("attitude_deg", 0.0, ge=0.0, lt=30.0)),
-        nav_noise_correlation_s=nav.number("correlation_s", 10.0, gt=0.0),
-        heading_rad=_optional_radians(r, "heading_deg"),
-        min_line_m=r.number("min_line_m", 20.0, gt=0.0),
+    n_train: int = setting(45, kind="integer", ge=0)
+    n_test: int = setting(12, kind="integer", ge=0)
+    train_cross_fraction: float = setting(0.5, ge=0.0, le=1.0)
+    main_axis: str = setting("x", kind="choice", choices=("x", "y"))
+    line_spacing_m: float | None = setting(None, kind="optional_number", gt=0.0)
+    margin_m: float = setting(2.0, ge=0.0)
+    speed_mps: float = setting(2.0, gt=0.0)
+    ping_rate_hz: float = setting(12.0, gt=0.0)
+    turn_time_s: float = setting(60.0, ge=0.0)
+    mount: str = setting("hull", kind="choice", choices=("hull", "auv"))
+    sonar_depth_m: float = setting(1.5, ge=0.0)
+    altitude_m: float = setting(10.0, gt=0.0)
+    altitude_smoothing_m: float = setting(15.0, ge=0.0)
+    min_altitude_m: float = setting(2.0, gt=0.0)
+    roll_rad: float = setting(math.radians(1.0), "motion.roll_deg", unit="deg", ge=0.0, lt=30.0)
+    pitch_rad: float = setting(math.radians(0.5), "motion.pitch_deg", unit="deg", ge=0.0, lt=30.0)
+    yaw_rad: float = setting(math.radians(0.5), "motion.yaw_deg", unit="deg", ge=0.0, lt=30.0)
+    motion_period_s: float = setting(6.0, "motion.period_s", gt=0.0)
+    nav_position_noise_m: float = setting(0.0, "nav_noise.position_m", ge=0.0)
+    nav_attitude_noise_rad: float = setting(
+        0.0, "nav_noise.attitude_deg", unit="deg", ge=0.0, lt=30.0
     )
-    motion.done()
-    nav.done()
+    nav_noise_correlation_s: float = setting(10.0, "nav_noise.correlation_s", gt=0.0)
+    heading_rad: float | None = setting(None, "heading_deg", kind="optional_number", unit="deg")
+    min_line_m: float = setting(20.0, gt=0.0)
+
+
+def _read_plan(r: ConfigReader) -> PlanParams:
+    params = PlanParams(**read_fields(r, PlanParams))
     r.done()
     if params.n_train + params.n_test < 1:
         raise config_error(f"{r.path}.n_train + n_test", ">= 1 line", 0)
@@ -665,26 +450,28 @@ class SonarParams:
     at the nominal beam edges; the echo carries ``b^2``.
     """
 
-    frequency_hz: float = 850e3
-    tilt_rad: float = math.radians(25.0)
-    beam_width_rad: float = math.radians(50.0)
-    beam_rolloff: float = 2.0
-    sidelobe_db: float = -22.0
-    min_range_m: float = 1.0
-    max_range_m: float = 50.0
-    n_bins: int = 512
-    oversampling: int = 4
-    rays_per_raw_bin: float = 1.5
-    theta_ray_fraction: float = 0.25
-    salinity_ppt: float = 35.0
-    temperature_c: float = 8.0
-    ph: float = 8.0
-    tvg_spreading_exponent: float = 3.0
-    tvg_absorption_factor: float = 1.0
-    speckle_looks: float = 1.0
-    snr_db: float = 18.0
-    reference_level: float = 0.3
-    quantisation_bits: int = 16
+    frequency_hz: float = setting(850e3, "frequency_khz", unit="khz", gt=0.0)
+    tilt_rad: float = setting(math.radians(25.0), "tilt_deg", unit="deg", ge=0.0, lt=90.0)
+    beam_width_rad: float = setting(
+        math.radians(50.0), "beam_width_deg", unit="deg", gt=0.0, lt=180.0
+    )
+    beam_rolloff: float = setting(2.0, gt=0.0)
+    sidelobe_db: float = setting(-22.0, lt=0.0)
+    min_range_m: float = setting(1.0, gt=0.0)
+    max_range_m: float = setting(50.0, gt=0.0)
+    n_bins: int = setting(512, kind="integer", ge=2)
+    oversampling: int = setting(4, kind="integer", ge=1)
+    rays_per_raw_bin: float = setting(1.5, gt=0.0)
+    theta_ray_fraction: float = setting(0.25, gt=0.0, lt=1.0)
+    salinity_ppt: float = setting(35.0, "water.salinity_ppt", ge=0.0, le=45.0)
+    temperature_c: float = setting(8.0, "water.temperature_c", ge=-2.0, le=35.0)
+    ph: float = setting(8.0, "water.ph", ge=6.0, le=9.0)
+    tvg_spreading_exponent: float = setting(3.0, "tvg.spreading_exponent", ge=0.0, le=6.0)
+    tvg_absorption_factor: float = setting(1.0, "tvg.absorption_factor", ge=0.0, le=2.0)
+    speckle_looks: float = setting(1.0, gt=0.0)
+    snr_db: float = setting(18.0)
+    reference_level: float = setting(0.3, gt=0.0, le=1.0)
+    quantisation_bits: int = setting(16, kind="integer", ge=1)
 
     @property
     def n_raw_bins(self) -> int:
@@ -695,33 +482,8 @@ class SonarParams:
         return (self.tilt_rad - self.beam_width_rad / 2, self.tilt_rad + self.beam_width_rad / 2)
 
 
-def _read_sonar(r: _Reader) -> SonarParams:
-    water = r.section("water")
-    tvg = r.section("tvg")
-    params = SonarParams(
-        frequency_hz=1e3 * r.number("frequency_khz", 850.0, gt=0.0),
-        tilt_rad=math.radians(r.number("tilt_deg", 25.0, ge=0.0, lt=90.0)),
-        beam_width_rad=math.radians(r.number("beam_width_deg", 50.0, gt=0.0, lt=180.0)),
-        beam_rolloff=r.number("beam_rolloff", 2.0, gt=0.0),
-        sidelobe_db=r.number("sidelobe_db", -22.0, lt=0.0),
-        min_range_m=r.number("min_range_m", 1.0, gt=0.0),
-        max_range_m=r.number("max_range_m", 50.0, gt=0.0),
-        n_bins=r.integer("n_bins", 512, ge=2),
-        oversampling=r.integer("oversampling", 4, ge=1),
-        rays_per_raw_bin=r.number("rays_per_raw_bin", 1.5, gt=0.0),
-        theta_ray_fraction=r.number("theta_ray_fraction", 0.25, gt=0.0, lt=1.0),
-        salinity_ppt=water.number("salinity_ppt", 35.0, ge=0.0, le=45.0),
-        temperature_c=water.number("temperature_c", 8.0, ge=-2.0, le=35.0),
-        ph=water.number("ph", 8.0, ge=6.0, le=9.0),
-        tvg_spreading_exponent=tvg.number("spreading_exponent", 3.0, ge=0.0, le=6.0),
-        tvg_absorption_factor=tvg.number("absorption_factor", 1.0, ge=0.0, le=2.0),
-        speckle_looks=r.number("speckle_looks", 1.0, gt=0.0),
-        snr_db=r.number("snr_db", 18.0),
-        reference_level=r.number("reference_level", 0.3, gt=0.0, le=1.0),
-        quantisation_bits=r.integer("quantisation_bits", 16, ge=1),
-    )
-    water.done()
-    tvg.done()
+def _read_sonar(r: ConfigReader) -> SonarParams:
+    params = SonarParams(**read_fields(r, SonarParams))
     r.done()
     if params.max_range_m <= params.min_range_m:
         raise config_error(
@@ -733,6 +495,12 @@ def _read_sonar(r: _Reader) -> SonarParams:
 
 
 # ------------------------------------------------------------------------- randomize
+def _optional_pair(key: str, unit: str | None = None, **bounds: float) -> Any:
+    """A randomised range of :class:`RandomizeParams`: ``[low, high]``, or null (the
+    survey's own value)."""
+    return setting(None, key, kind="optional_pair", unit=unit, **bounds)
+
+
 @dataclass(frozen=True)
 class RandomizeParams:
     """Per-line randomised sensor, seabed response and altitude (domain randomisation).
@@ -747,40 +515,35 @@ class RandomizeParams:
     """
 
     splits: tuple[str, ...] = ("train",)
-    tilt_rad: tuple[float, float] | None = None
-    beam_width_rad: tuple[float, float] | None = None
-    beam_rolloff: tuple[float, float] | None = None
-    sidelobe_db: tuple[float, float] | None = None
-    tvg_spreading_exponent: tuple[float, float] | None = None
-    tvg_absorption_factor: tuple[float, float] | None = None
-    gain_db: tuple[float, float] | None = None
-    mu_scale: tuple[float, float] | None = None
-    exponent_offset: tuple[float, float] | None = None
-    altitude_offset_m: tuple[float, float] | None = None
+    tilt_rad: tuple[float, float] | None = _optional_pair("sonar.tilt_deg", "deg", gt=0.0, le=89.0)
+    beam_width_rad: tuple[float, float] | None = _optional_pair(
+        "sonar.beam_width_deg", "deg", gt=0.0, le=179.0
+    )
+    beam_rolloff: tuple[float, float] | None = _optional_pair("sonar.beam_rolloff", gt=0.0)
+    sidelobe_db: tuple[float, float] | None = _optional_pair("sonar.sidelobe_db", le=-1.0)
+    tvg_spreading_exponent: tuple[float, float] | None = _optional_pair(
+        "sonar.tvg_spreading_exponent", le=6.0
+    )
+    tvg_absorption_factor: tuple[float, float] | None = _optional_pair(
+        "sonar.tvg_absorption_factor", le=2.0
+    )
+    gain_db: tuple[float, float] | None = _optional_pair("sonar.gain_db")
+    mu_scale: tuple[float, float] | None = _optional_pair("materials.mu_scale", gt=0.0)
+    exponent_offset: tuple[float, float] | None = _optional_pair("materials.exponent_offset")
+    altitude_offset_m: tuple[float, float] | None = _optional_pair("altitude_offset_m")
     #: fly each line at its own altitude drawn from this range, following the seabed like an
     #: AUV (the line's altitude minus its along-track smoothed altitude, plus the draw), so
     #: the altitude says nothing of the slopes below (a hull-mounted sonar over hills is low
     #: exactly where the seabed falls away on both sides)
-    altitude_m: tuple[float, float] | None = None
+    altitude_m: tuple[float, float] | None = _optional_pair("altitude_m", gt=0.0)
     #: along-track smoothing (m) of the terrain following
-    altitude_smoothing_m: float = 15.0
+    altitude_smoothing_m: float = setting(15.0, gt=0.0)
 
 
-def _optional_pair(r: _Reader, key: str, **limits: float) -> tuple[float, float] | None:
-    if r.data.get(key) is None:
-        r.used.add(key)
-        return None
-    return r.pair(key, (0.0, 0.0), **limits)
-
-
-def _read_randomize(r: _Reader) -> RandomizeParams | None:
+def _read_randomize(r: ConfigReader) -> RandomizeParams | None:
     """``None`` unless ``enabled: true`` (the ranges are validated either way)."""
-    enabled = r.raw("enabled")
-    if enabled is None:
-        enabled = False
-    if not isinstance(enabled, bool):
-        raise config_error(f"{r.path}.enabled", "true or false", enabled)
-    path, splits = r._get("splits", ["train"])
+    enabled = r.boolean("enabled")
+    path, splits = r.get("splits", ["train"])
     if (
         not isinstance(splits, Sequence)
         or isinstance(splits, str)
@@ -788,32 +551,15 @@ def _read_randomize(r: _Reader) -> RandomizeParams | None:
         or any(x not in ("train", "test") for x in splits)
     ):
         raise config_error(path, "a non-empty list of 'train' / 'test'", splits)
-    sr, mr = r.section("sonar"), r.section("materials")
-
-    def radians(pair: tuple[float, float] | None) -> tuple[float, float] | None:
-        return None if pair is None else (math.radians(pair[0]), math.radians(pair[1]))
-
+    sr = r.section("sonar")  # opened first, as the checks read them: sonar, then materials
+    r.section("materials")
     params = RandomizeParams(
-        splits=tuple(str(x) for x in splits),
-        tilt_rad=radians(_optional_pair(sr, "tilt_deg", gt=0.0, le=89.0)),
-        beam_width_rad=radians(_optional_pair(sr, "beam_width_deg", gt=0.0, le=179.0)),
-        beam_rolloff=_optional_pair(sr, "beam_rolloff", gt=0.0),
-        sidelobe_db=_optional_pair(sr, "sidelobe_db", le=-1.0),
-        tvg_spreading_exponent=_optional_pair(sr, "tvg_spreading_exponent", le=6.0),
-        tvg_absorption_factor=_optional_pair(sr, "tvg_absorption_factor", le=2.0),
-        gain_db=_optional_pair(sr, "gain_db"),
-        mu_scale=_optional_pair(mr, "mu_scale", gt=0.0),
-        exponent_offset=_optional_pair(mr, "exponent_offset"),
-        altitude_offset_m=_optional_pair(r, "altitude_offset_m"),
-        altitude_m=_optional_pair(r, "altitude_m", gt=0.0),
-        altitude_smoothing_m=r.number("altitude_smoothing_m", 15.0, gt=0.0),
+        splits=tuple(str(x) for x in splits), **read_fields(r, RandomizeParams)
     )
     for key in ("tvg_spreading_exponent", "tvg_absorption_factor"):
         pair = getattr(params, key)
         if pair is not None and pair[0] < 0:
             raise config_error(f"{sr.path}.{key}[0]", "a number >= 0", pair[0])
-    sr.done()
-    mr.done()
     r.done()
     return params if enabled else None
 
@@ -836,7 +582,7 @@ class SyntheticSurveyConfig:
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> SyntheticSurveyConfig:
         """Validate a plain ``data.survey`` mapping (resolved, no OmegaConf nodes)."""
-        r = _Reader(cfg, ROOT)
+        r = ConfigReader(cfg, ROOT)
         kind = r.text("kind", "synthetic")
         if kind != "synthetic":
             raise config_error(f"{ROOT}.kind", "'synthetic'", kind)
@@ -848,7 +594,7 @@ class SyntheticSurveyConfig:
         if terrain.grid is None:
             origin = _read_origin(r.section("origin"))
         else:
-            path, given = r._get("origin", None)
+            path, given = r.get("origin", None)
             if given is not None:
                 raise config_error(
                     path, "no origin next to terrain.grid (the grid gives it)", given
@@ -912,7 +658,7 @@ _NEUTRAL_KEYS = (
 )
 
 
-def _read_origin(r: _Reader) -> dict:
+def _read_origin(r: ConfigReader) -> dict:
     crs = r.text("crs", "EPSG:32633")
     origin = {
         "crs": crs,
