@@ -17,8 +17,10 @@ export SSS2BATHY_ROOT := $(CURDIR)
 
 help: ## Show this help (target names in colour only on a terminal)
 	@if [ -t 1 ]; then on=$$'\033[36m'; off=$$'\033[0m'; else on=; off=; fi; \
-	grep -hE '^[a-zA-Z0-9_-]+:.*?## ' $(MAKEFILE_LIST) | \
-		awk -v on="$$on" -v off="$$off" 'BEGIN {FS = ":.*?## "}; {printf "  %s%-18s%s %s\n", on, $$1, off, $$2}'
+	grep -hE '^([a-zA-Z0-9_-]+:.*?## |##@ )' $(MAKEFILE_LIST) | \
+		awk -v on="$$on" -v off="$$off" 'BEGIN {FS = ":.*?## "} \
+			/^##@ / {printf "%s%s\n", (n++ ? "\n" : ""), substr($$0, 5); next} \
+			{printf "  %s%-18s%s %s\n", on, $$1, off, $$2}'
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -58,7 +60,7 @@ prepare: install ## Generate + drape the synthetic surveys (cached)
 # The paper's experiments, one make target each. conf/experiment/<name>.yaml's `pipeline` key
 # names an experiment's target; the pipeline runs the target's experiments, training a CNN
 # first when one reads a CNN and no run of this scale has one.
-EXPERIMENT_TARGETS := $(sort $(shell sed -n 's/^  make: *//p' conf/experiment/*.yaml))
+EXPERIMENT_TARGETS := $(sort $(shell sed -n 's/^  make: *//p' conf/experiment/*.yaml 2>/dev/null))
 .PHONY: $(EXPERIMENT_TARGETS)
 $(EXPERIMENT_TARGETS): install
 	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) make=$@ $(ARGS)

@@ -51,8 +51,9 @@ SIREN_TABLES: dict[str, tuple[str, dict[str, dict], bool]] = {
 }
 CNN_KEY = "cnn"
 REPORT_TABLES = (CNN_KEY, *SIREN_TABLES)
-#: the report's figures of a SIREN table, published as ``docs/images/<name>_<key>_<scale>.png``
-FIGURES = ("pdf", "maps")
+#: the report's figures of a SIREN table (``<figure>_<key>.png``, the zoomed panels
+#: ``zoom_<key>_<k>.png``), published as ``docs/images/<its stem>_<scale>.png``
+FIGURES = ("pdf_{key}.png", "maps_{key}.png", "zoom_{key}_*.png")
 
 
 # ------------------------------------------------------------------------------ tables
@@ -212,13 +213,16 @@ def readme_results(results: Mapping[str, Any]) -> str:
             mae, cs = _f(m.get("mae"), ".3f"), _f(m.get("grad_cs"), ".3f")
             lines.append(f"| {label} | {mae} | {cs} | {theirs} |")
         lines.append("")
-    others = [
-        f"{t.get('survey')}: "
-        + ", ".join(f"{label} {_f(m.get('mae'), '.3f')} m" for label, m in t["rows"].items())
-        for _, t in siren[1:]
-    ]
+    others = []
+    for key, table in siren[1:]:
+        title, paper, _ = SIREN_TABLES.get(key, (table.get("title", key), {}, False))
+        cells = []
+        for label, m in table["rows"].items():
+            theirs = f" (paper {paper[label]['mae']:.3f} m)" if label in paper else ""
+            cells.append(f"{label} {_f(m.get('mae'), '.3f')} m{theirs}")
+        others.append(f"{title}: " + ", ".join(cells))
     if others:
-        lines += ["Map MAE on the other sites: " + "; ".join(others) + ".", ""]
+        lines += ["Map MAE elsewhere: " + "; ".join(others) + ".", ""]
     return "\n".join(lines + [README_END])
 
 
@@ -243,7 +247,7 @@ def readme_block(text: str) -> str:
 # ----------------------------------------------------------------------------- publish
 def publish(report_dir: str | Path, docs_dir: str | Path, readme: str | Path) -> list[Path]:
     """Copy a report's ``results.json`` and its SIREN tables' figures into ``docs_dir``
-    (figures as ``images/<figure>_<key>_<scale>.png``), then write ``docs_dir/results.md``
+    (:data:`FIGURES`, as ``images/<figure>_<key>_<scale>.png``), then write ``docs_dir/results.md``
     and the README's results block from it; return the files written."""
     report_dir, docs_dir, readme = Path(report_dir), Path(docs_dir), Path(readme)
     source = report_dir / RESULTS_JSON
@@ -261,14 +265,12 @@ def publish(report_dir: str | Path, docs_dir: str | Path, readme: str | Path) ->
     figures: dict[str, list[str]] = {}
     scale = str(results.get("scale", "unknown")).replace(", ", "_")
     for key in results.get("siren") or {}:
-        for name in FIGURES:
-            png = report_dir / f"{name}_{key}.png"
-            if png.is_file():
-                target = docs_dir / "images" / f"{name}_{key}_{scale}.png"
-                target.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(png, target)
-                figures.setdefault(key, []).append(f"images/{target.name}")
-                written.append(target)
+        for png in (p for f in FIGURES for p in sorted(report_dir.glob(f.format(key=key)))):
+            target = docs_dir / "images" / f"{png.stem}_{scale}.png"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(png, target)
+            figures.setdefault(key, []).append(f"images/{target.name}")
+            written.append(target)
     results["figures"] = figures
     atomic_write_text(docs_dir / RESULTS_JSON, json.dumps(results, indent=2) + "\n")
     atomic_write_text(docs_dir / RESULTS_MD, results_markdown(results))

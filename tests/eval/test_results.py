@@ -60,7 +60,7 @@ def test_the_readme_block_holds_the_numbers_of_the_results():
     assert block.startswith(README_START) and block.endswith(README_END)
     assert "| s1 | 0.0500 | 0.1000 | 0.50 |" in block  # skill = CNN MAE / constant MAE
     assert "| SIREN-GT-N2d | 0.200 |  | 0.079 / 0.740 |" in block  # the paper beside ours
-    assert "s3: SIREN-Lambert 0.400 m" in block
+    assert "SIREN on synthetic_d3 (another sonar): SIREN-Lambert 0.400 m." in block
 
 
 def test_publish_writes_docs_and_readme_from_the_report(tmp_path):
@@ -68,17 +68,18 @@ def test_publish_writes_docs_and_readme_from_the_report(tmp_path):
     report.mkdir()
     (report / "results.json").write_text(json.dumps(_results()))
     (report / "pdf_d1.png").write_bytes(b"png")
+    (report / "zoom_d1_0.png").write_bytes(b"zoom")
     readme = tmp_path / "README.md"
     readme.write_text(f"# x\n\nbefore\n{README_START}\nold\n{README_END}\nafter\n")
     written = publish(report, tmp_path / "docs", readme)
     results = json.loads((tmp_path / "docs" / "results.json").read_text())
-    assert results["figures"] == {"d1": ["images/pdf_d1_tiny.png"]}
+    assert results["figures"] == {"d1": ["images/pdf_d1_tiny.png", "images/zoom_d1_0_tiny.png"]}
     assert (tmp_path / "docs" / "images" / "pdf_d1_tiny.png").read_bytes() == b"png"
     assert (tmp_path / "docs" / "results.md").read_text() == results_markdown(results)
     text = readme.read_text()
     assert readme_block(text) == readme_results(results) and "old" not in text
     assert text.startswith("# x\n\nbefore\n") and text.endswith("\nafter\n")
-    assert readme in written and len(written) == 4
+    assert readme in written and len(written) == 5
 
 
 def test_publish_refuses_a_report_without_runs_and_a_readme_without_the_block(tmp_path):
