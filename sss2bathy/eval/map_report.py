@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 #: a map run folder holds these (what :func:`is_map_run` looks for)
 MAP_RUN_FILES = ("map.tif", "map.npz", "metrics.json")
 RASTERS = ("map.tif", "uncertainty.tif", "mosaic.tif")
+#: preformatted text that wraps (long command lines, summary lines)
+PRE = '<pre style="white-space: pre-wrap; font-size: 12px">'
 LOG_LINE = re.compile(r"^\[[^\]]*\]\[(?P<logger>[^\]]*)\]\[WARNING\] - (?P<msg>.*)$")
 
 
@@ -60,10 +62,13 @@ def log_warnings(log_text: str) -> list[tuple[str, str, int]]:
     return [(lg, msg, counts[(lg, msg)]) for lg, msg in order]
 
 
-def hillshade_png(run_dir: str | Path, azimuth: float = 315.0, altitude: float = 45.0) -> Path:
-    """``run_dir/hillshade.png``: the map (``map.npz``, the cells ``map.tif`` holds) lit
-    from ``azimuth`` (degrees clockwise from north) at ``altitude`` degrees, heights in
-    colour over the shading, axes in local metres."""
+def hillshade_png(
+    run_dir: str | Path, azimuth: float = 315.0, altitude: float = 45.0, exaggeration: float = 5.0
+) -> Path:
+    """``run_dir/hillshade.png``: the map (``map.npz``, the cells ``map.tif`` holds) as a
+    grey hillshade lit from ``azimuth`` (degrees clockwise from north) at ``altitude``
+    degrees, heights exaggerated ``exaggeration`` times (metre-scale relief over a swath
+    shows), axes in local metres; the heights' colours are ``map.png``'s."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,24 +84,29 @@ def hillshade_png(run_dir: str | Path, azimuth: float = 315.0, altitude: float =
     finite = np.isfinite(shown)
     if not finite.any():
         raise ValueError(f"{run_dir / 'map.npz'}: expected cells with heights, found none")
-    filled = np.where(finite, shown, np.nanmean(shown))
+    # no-data cells take their nearest height, so the map's edges cast no false slopes
+    from scipy.ndimage import distance_transform_edt
+
+    nearest = distance_transform_edt(~finite, return_distances=False, return_indices=True)
+    filled = shown[tuple(nearest)]
     ls = LightSource(azdeg=azimuth, altdeg=altitude)
-    cmap = plt.get_cmap("viridis")
-    lo, hi = np.nanpercentile(shown, [1, 99])
-    rgb = ls.shade(
-        filled[::-1], cmap=cmap, blend_mode="soft", vert_exag=1.0, dx=cell, dy=cell,
-        vmin=lo, vmax=hi if hi > lo else lo + 1e-3,
-    )[::-1]  # fmt: skip
-    rgb[~finite] = 1.0
+    # row 0 of the grid is south: flip for the light's north, back for imshow(origin=lower)
+    shade = ls.hillshade(filled[::-1], vert_exag=exaggeration, dx=cell, dy=cell)[::-1]
     ny, nx = h.shape
     extent = (x0 - cell / 2, x0 + (nx - 0.5) * cell, y0 - cell / 2, y0 + (ny - 0.5) * cell)
     fig, ax = plt.subplots(figsize=(7.5, 5.5))
-    ax.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(lo, hi))
-    fig.colorbar(sm, ax=ax, label="height (m, up)", shrink=0.9)
-    ax.set_title(f"hillshade (sun from {azimuth:.0f} deg, {altitude:.0f} deg up)", fontsize=10)
+    ax.imshow(
+        np.ma.masked_where(~finite, shade), origin="lower", extent=extent, cmap="gray",
+        vmin=0.0, vmax=1.0, interpolation="nearest",
+    )  # fmt: skip
+    ax.set_title(
+        f"hillshade (sun from {azimuth:.0f} deg, {altitude:.0f} deg up; heights x "
+        f"{exaggeration:g})",
+        fontsize=10,
+    )
     ax.set_xlabel("x (m, local east)", fontsize=8)
     ax.set_ylabel("y (m, local north)", fontsize=8)
+    ax.set_aspect("equal")
     fig.tight_layout()
     return save_figure(fig, run_dir / "hillshade.png", dpi=110)
 
@@ -189,8 +199,14 @@ def import_section(run_dir: Path) -> list[str]:
             f"- `{html.escape(lg)}` {html.escape(msg)}" + (f" (× {n})" if n > 1 else "")
             for lg, msg, n in warnings
         ]
+    elif log_path.is_file():
+        lines.append(
+            "No WARNING in this run's log. A survey already in paths.data_dir is reused, "
+            "not imported again: its import's warnings are in the log of the run that "
+            "imported it; its import counts follow."
+        )
     else:
-        lines.append("No WARNING in the run's log." if log_path.is_file() else "No map.log.")
+        lines.append("No map.log in the run folder.")
     lines.append("")
     stats = _import_stats(run_dir)
     table = import_counts_table(stats)
@@ -257,7 +273,7 @@ def provenance_section(run_dir: Path) -> list[str]:
         "SSS2BATHY_VERTICAL_REFERENCE",
     )
     lines += ["| map.tif tag | value |", "|---|---|"]
-    lines += [f"| {k} | `{html.escape(tags[k])}` |" for k in keys if k in tags]
+    lines += [f"| {k} | <code>{_cell(tags[k])}</code> |" for k in keys if k in tags]
     lines += ["", "| file | cloud-optimised GeoTIFF |", "|---|---|"]
     for name in RASTERS:
         path = run_dir / name
@@ -271,6 +287,11 @@ def provenance_section(run_dir: Path) -> list[str]:
     return lines + [""]
 
 
+def _cell(text: str) -> str:
+    """``text`` safe inside a Markdown table cell (HTML-escaped, no ``|``)."""
+    return html.escape(str(text)).replace("|", "&#124;")
+
+
 def settings_section(run_dir: Path) -> list[str]:
     """The command's overrides and the composed fit config, folded."""
     lines = ["## Settings", ""]
@@ -279,14 +300,14 @@ def settings_section(run_dir: Path) -> list[str]:
         lines += [
             "The command's settings (`.hydra/overrides.yaml`):",
             "",
-            f"<pre>{html.escape(overrides.read_text())}</pre>",
+            f"{PRE}{html.escape(overrides.read_text())}</pre>",
             "",
         ]
     config = run_dir / "config.yaml"
     if config.is_file():
         lines += [
             "<details><summary>The fit's whole config (config.yaml)</summary>",
-            f"<pre>{html.escape(config.read_text())}</pre>",
+            f"{PRE}{html.escape(config.read_text())}</pre>",
             "</details>",
             "",
         ]
@@ -334,7 +355,7 @@ def write_map_report(run_dir: str | Path, summary: Sequence[str] | None = None) 
         "",
     ]
     if summary:
-        text += [f"<pre>{html.escape(chr(10).join(summary))}</pre>", ""]
+        text += [f"{PRE}{html.escape(chr(10).join(summary))}</pre>", ""]
     text += ["## Maps", ""]
     for name, caption in FIGURES:
         if (run_dir / name).is_file():
