@@ -65,7 +65,11 @@ def test_sss2bathy_map_with_an_exported_cnn(tmp_path):
     assert "siren_cnn_n2d" in proc.stdout
     metrics = json.loads((run / "metrics.json").read_text())
     assert np.isfinite(metrics["final/holdout_alt_mae"]) and (run / "map.tif").is_file()
-    # the simulator's sonar is the one the CNN was trained on: no envelope warning
-    assert "was trained on" not in proc.stderr + proc.stdout
+    # the simulator's sonar is the one the CNN was trained on; the test lines fly lower and
+    # higher than its one training line: one WARNING, naming the exported file and only that
+    warned = [ln for ln in (proc.stderr + proc.stdout).splitlines() if "was trained on" in ln]
+    assert len(warned) == 1, warned
+    assert f"the CNN checkpoint {weights} was trained on 850 kHz" in warned[0]
+    assert "altitude (outside): 1 setting(s) outside" in warned[0]
     # the cached predictions are the exported model's
     assert any((tmp_path / "data").glob("*/predictions/*/*.npz"))
