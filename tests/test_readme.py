@@ -63,3 +63,17 @@ def test_make_help_and_config_comments_have_no_work_log_references():
 )
 def test_the_check_finds_each_kind_of_reference(text):
     assert _work_log_hits([text], "x")
+
+
+def test_every_make_command_in_the_readme_is_a_target():
+    """``make <target>`` in the README names a target of the Makefile (or an experiment's,
+    from conf/experiment)."""
+    from sss2bathy.utils.experiments import pipeline_experiments
+
+    text = README.read_text(encoding="utf-8")
+    named = set(re.findall(r"`make ([a-z0-9-]+)", text))
+    makefile = (ROOT / "Makefile").read_text()
+    targets = set(re.findall(r"^([a-zA-Z0-9_-]+):(?!=)", makefile, re.M))
+    targets |= {e.make for e in pipeline_experiments(ROOT / "conf")}
+    assert named, "README.md: expected make commands"
+    assert named <= targets, f"README.md: no such make target {sorted(named - targets)}"

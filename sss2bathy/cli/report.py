@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> None:
         prog="sss2bathy-report",
         description=textwrap.fill(" ".join(__doc__.split("\n\n")[0].split()).replace("``", "")),
         epilog="examples:\n  sss2bathy-report\n  sss2bathy-report --outputs /scratch/outputs "
-        "--out /tmp/report",
+        "--out /tmp/report\n  sss2bathy-report --publish",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
