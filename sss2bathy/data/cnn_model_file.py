@@ -29,7 +29,6 @@ Lightning checkpoint (``hyper_parameters``, ``datamodule_hyper_parameters``, ``s
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -332,19 +331,6 @@ def as_checkpoint(path: str | Path, weights: bool = True) -> dict[str, Any]:
     }
 
 
-def finite_metrics(metrics: Mapping[str, Any]) -> dict[str, float]:
-    """The finite numbers of a flat metrics mapping, as floats (JSON has no NaN)."""
-    out = {}
-    for key, value in metrics.items():
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            continue
-        if math.isfinite(number):
-            out[str(key)] = number
-    return out
-
-
 __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
@@ -353,7 +339,6 @@ __all__ = [
     "WEIGHTS_SUFFIX",
     "as_checkpoint",
     "check_meta",
-    "finite_metrics",
     "is_model_file",
     "metadata_from_checkpoint",
     "model_files",

@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any
 
 import sss2bathy
+from sss2bathy.callbacks.hparams import final_scalars
 from sss2bathy.data.cnn_model_file import (
-    finite_metrics,
     is_model_file,
     metadata_from_checkpoint,
     model_files,
@@ -166,7 +166,7 @@ def run_metrics(ckpt_path: Path, extra: Sequence[str | Path] = ()) -> dict[str, 
         files.append(path)
     values: dict[str, float] = {}
     for path in files:
-        data = finite_metrics(_read_json(path, "a flat metrics file"))
+        data = final_scalars(_read_json(path, "a flat metrics file"))
         values.update({k: v for k, v in data.items() if k.startswith(METRIC_PREFIXES)})
     return {"values": values, "sources": [str(p) for p in files]}
 
