@@ -46,7 +46,13 @@ from sss2bathy.survey import (
     MASK_VALID,
     MASK_WATER_COLUMN,
 )
-from sss2bathy.utils.checks import coerce_config
+from sss2bathy.utils.checks import (
+    coerce_config,
+    is_integer,
+    require,
+    require_bool,
+    require_number,
+)
 
 #: CNN input channels :func:`input_channels` can build; the first is an intensity channel
 #: (:data:`INTENSITY_CHANNELS`).
@@ -77,24 +83,21 @@ class SonarMaskConfig:
     shadow_smooth_bins: int = 1
 
     def __post_init__(self) -> None:
-        def number(name: str, lo: float, hi: float = math.inf) -> None:
-            v = getattr(self, name)
-            ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-            if not (ok and lo <= v <= hi):
-                span = f"in [{lo}, {hi}]" if math.isfinite(hi) else f">= {lo}"
-                raise ValueError(f"sonar_mask.{name}: expected a number {span}, found {v!r}")
-
-        number("nadir_margin_m", 0.0)
-        number("beam_margin_deg", 0.0, 45.0)
-        number("shadow_threshold", 0.0)
-        if not isinstance(self.beam_limits, bool):
-            raise ValueError(
-                f"sonar_mask.beam_limits: expected true or false, found {self.beam_limits!r}"
-            )
+        at_least_0, in_0_45 = "a number >= 0.0", "a number in [0.0, 45.0]"
+        require_number(
+            "sonar_mask.nadir_margin_m", self.nadir_margin_m, lambda v: v >= 0, at_least_0
+        )
+        require_number(
+            "sonar_mask.beam_margin_deg", self.beam_margin_deg, lambda v: 0 <= v <= 45, in_0_45
+        )
+        require_number(
+            "sonar_mask.shadow_threshold", self.shadow_threshold, lambda v: v >= 0, at_least_0
+        )
+        require_bool("sonar_mask.beam_limits", self.beam_limits)
         for name in ("shadow_smooth_pings", "shadow_smooth_bins"):
             v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1 and v % 2 == 1):
-                raise ValueError(f"sonar_mask.{name}: expected an odd integer >= 1, found {v!r}")
+            odd = is_integer(v) and v >= 1 and v % 2 == 1
+            require(f"sonar_mask.{name}", v, odd, "an odd integer >= 1")
 
     @classmethod
     def coerce(cls, cfg: SonarMaskConfig | Mapping[str, Any] | None) -> SonarMaskConfig:

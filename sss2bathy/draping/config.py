@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from sss2bathy.utils.checks import coerce_config
+from sss2bathy.utils.checks import (
+    coerce_config,
+    is_integer,
+    require,
+    require_int,
+    require_number,
+)
 from sss2bathy.utils.threads import available_cores
 
 ENGINES = ("auto", "embree", "triangle")
@@ -77,33 +82,19 @@ class DrapeConfig:
     mesh_path: str | None = None
 
     def __post_init__(self) -> None:
-        positive = ("rays_per_bin", "fan_step_deg", "jump_check_bins", "jump_tolerance")
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"drape.{name}: expected a positive number, found {value!r}")
+        for name in ("rays_per_bin", "fan_step_deg", "jump_check_bins", "jump_tolerance"):
+            require_number(
+                f"drape.{name}", getattr(self, name), lambda v: v > 0, "a positive number"
+            )
         for name in ("beam_margin_deg", "nadir_margin_deg"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and 0 <= value <= 45):
-                raise ValueError(f"drape.{name}: expected a number in [0, 45], found {value!r}")
-        if self.fan_step_deg > 5:
-            raise ValueError(
-                f"drape.fan_step_deg: expected <= 5 degrees, found {self.fan_step_deg}"
-            )
-        if not (isinstance(self.pings_per_chunk, int) and self.pings_per_chunk >= 1):
-            raise ValueError(
-                f"drape.pings_per_chunk: expected a positive integer, found {self.pings_per_chunk!r}"
-            )
+            require_number(f"drape.{name}", value, lambda v: 0 <= v <= 45, "a number in [0, 45]")
+        require("drape.fan_step_deg", self.fan_step_deg, self.fan_step_deg <= 5, "<= 5 degrees")
+        require_int("drape.pings_per_chunk", self.pings_per_chunk)
         threads = self.threads
-        if not (
-            threads == "auto"
-            or (isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1)
-        ):
-            raise ValueError(
-                f"drape.threads: expected a positive integer or 'auto', found {threads!r}"
-            )
-        if self.engine not in ENGINES:
-            raise ValueError(f"drape.engine: expected one of {ENGINES}, found {self.engine!r}")
+        ok = threads == "auto" or (is_integer(threads) and threads >= 1)
+        require("drape.threads", threads, ok, "a positive integer or 'auto'")
+        require("drape.engine", self.engine, self.engine in ENGINES, f"one of {ENGINES}")
 
     @classmethod
     def coerce(cls, cfg: DrapeConfig | Mapping[str, Any] | None) -> DrapeConfig:
