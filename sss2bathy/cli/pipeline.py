@@ -176,16 +176,20 @@ def record_time(path: Path, scale: str, name: str, seconds: float) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if any(a in HELP_FLAGS for a in argv):
-        print(usage(), end="")
-        return 0
-    setup_environment()
-    args = parse_args(argv)
-    root = project_root()
-    # the outputs folder the stages write to (a paths.output_dir override moves it)
-    given = [a.split("=", 1)[1] for a in args.overrides if a.startswith("paths.output_dir=")]
-    outputs = root / Path(given[-1]).expanduser() if given else root / "outputs"
-    plan = select(args, outputs)
+    try:  # a bad experiment file's pipeline key is one line
+        if any(a in HELP_FLAGS for a in argv):
+            print(usage(), end="")
+            return 0
+        setup_environment()
+        args = parse_args(argv)
+        root = project_root()
+        # the outputs folder the stages write to (a paths.output_dir override moves it)
+        given = [a.split("=", 1)[1] for a in args.overrides if a.startswith("paths.output_dir=")]
+        outputs = root / Path(given[-1]).expanduser() if given else root / "outputs"
+        plan = select(args, outputs)
+    except ValueError as err:
+        print(f"pipeline: {err}", file=sys.stderr)
+        return 2
     times_path = outputs / "report" / "stage_times.json"
     t_all = time.perf_counter()
     for i, stage in enumerate(plan, 1):

@@ -38,6 +38,27 @@ def test_help_prints_usage_and_runs_nothing(tmp_path, flag):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["conf"]  # nothing written
 
 
+def test_a_bad_pipeline_key_is_one_line_and_exit_2(tmp_path):
+    (tmp_path / "conf").mkdir()
+    shutil.copytree(ROOT / "conf" / "experiment", tmp_path / "conf" / "experiment")
+    bad = tmp_path / "conf" / "experiment" / "siren_lambert.yaml"
+    bad.write_text(bad.read_text().replace("  order: 70", "  order: seventy"))
+    env = dict(os.environ, SSS2BATHY_ROOT=str(tmp_path), OMP_NUM_THREADS="1")
+    proc = subprocess.run(
+        [sys.executable, "-m", "sss2bathy.cli.pipeline", "--help"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip().count("\n") == 0, proc.stderr
+    assert "siren_lambert.yaml: pipeline.order: expected an integer >= 0, found 'seventy'" in (
+        proc.stderr
+    )
+
+
 def test_parse_args_splits_scale_stages_and_overrides():
     args = parse_args(["scale=tiny", "stages=[cnn, report]", "seed=2", "make=d2", "needs=[cnn]"])
     assert args == Args("tiny", ["cnn", "report"], "d2", ["cnn"], ["seed=2"])
