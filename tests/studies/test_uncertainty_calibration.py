@@ -5,11 +5,12 @@ its MBES truth."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sss2bathy.eval.uncertainty import GAUSS_1SIGMA, calibrate_scale, coverage
+from sss2bathy.eval.uncertainty import GAUSS_1SIGMA, coverage
 from sss2bathy.survey.grid import BathyGrid
 from studies.uncertainty_calibration import (
     SurveyErrors,
@@ -20,6 +21,8 @@ from studies.uncertainty_calibration import (
     survey_errors,
     to_markdown,
 )
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_parse_specs():
@@ -79,17 +82,21 @@ def test_errors_on_truth_only_on_the_written_cells_in_the_truths_frame():
 
 @pytest.mark.slow
 def test_calibration_numbers_of_a_tiny_map_run(tmp_path):
-    """sss2bathy-map (tiny, verdict.folds=3) on a generated AUV survey with its MBES truth:
-    the jackknife sigma is positive and finite on every written cell, and a factor calibrated
-    on the southern half of the written cells puts the northern half within +-1 sigma
-    / +-2 sigma at 68 % / 95 % +- a wide tolerance (40-90 % / >= 75 %: one small survey,
-    one fit per fold, errors correlated over metres)."""
+    """sss2bathy-map (tiny, verdict.folds=3) on a generated AUV survey (seed 5: not a
+    calibration seabed) scored against its MBES truth with conf/map.yaml's tiny factor,
+    as sss2bathy-map writes it. Stated tolerance: +-1 sigma covers 68 % +- 30 points (one
+    small survey, one fit per fold, errors correlated over metres; at tiny scale the
+    jackknife's spread is a poor guide, docs/studies/uncertainty_calibration.md), +-2 sigma
+    more than +-1 sigma, and the raw jackknife (factor 1) less than the calibrated sigma."""
+    from omegaconf import OmegaConf
+
+    c = float(OmegaConf.load(ROOT / "conf" / "map.yaml").uncertainty.calibrated.tiny)
     s = survey_errors("tiny", 5, tmp_path / "study", folds=3)
     assert s.folds == 3 and s.error.size > 500
     assert np.all(np.isfinite(s.sigma_j)) and np.all(s.sigma_j >= 0) and s.sigma_j.max() > 0
-    half = np.arange(s.error.size) < s.error.size // 2  # cells in row order: south vs north
-    c = calibrate_scale(np.abs(s.error[half]), s.sigma_j[half])
-    within1 = coverage(s.error[~half], c * s.sigma_j[~half], 1)
-    within2 = coverage(s.error[~half], c * s.sigma_j[~half], 2)
-    assert 0.4 <= within1 <= 0.9, (c, within1)
-    assert within2 >= 0.75, (c, within2)
+    within1 = coverage(s.error, c * s.sigma_j, 1)
+    within2 = coverage(s.error, c * s.sigma_j, 2)
+    raw1 = coverage(s.error, s.sigma_j, 1)
+    assert abs(within1 - GAUSS_1SIGMA) <= 0.30, (c, within1)
+    assert within2 >= within1 + 0.05, (within1, within2)
+    assert raw1 < within1, (raw1, within1)
