@@ -71,8 +71,8 @@ def valid_footprint(path: str | Path, max_points: int = 200_000) -> list[tuple[f
         corners = np.concatenate(
             [np.stack([c + dc, r + dr], 1) for dc in (0, 1) for dr in (0, 1)]
         ).astype(np.float64)
-    xs, ys = t * (corners[:, 0], corners[:, 1])
-    pts = np.stack([np.asarray(xs), np.asarray(ys)], 1)
+    col, row = corners[:, 0], corners[:, 1]
+    pts = np.stack([t.a * col + t.b * row + t.c, t.d * col + t.e * row + t.f], 1)
     hull = ConvexHull(pts)
     ring = [(float(x), float(y)) for x, y in pts[hull.vertices]]  # counter-clockwise
     return [*ring, ring[0]]
