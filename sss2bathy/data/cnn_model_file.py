@@ -166,7 +166,9 @@ def write_model(
     weights, json_path = model_files(out_dir / name)
     tensors = {k: v.detach().cpu().contiguous() for k, v in state.items()}
     with atomic_path(weights) as tmp:
-        save_file(tensors, str(tmp), metadata={"format": FORMAT, "name": name})
+        # one metadata key: safetensors writes a map's keys in no fixed order, and the same
+        # weights must give the same bytes (and SHA-256) at every export
+        save_file(tensors, str(tmp), metadata={"format": FORMAT})
     record = {
         "file": weights.name,
         "sha256": sha256(weights),

@@ -143,8 +143,14 @@ def training_record(ckpt_path: Path, ckpt: Mapping[str, Any]) -> dict[str, Any]:
         }
     if (run / ".hydra" / "config.yaml").is_file():
         config = resolved_config(run / ".hydra" / "config.yaml")
-        if record["data"]:  # the datamodule's own (resolved) arguments say it already
+        if record["data"]:  # the datamodule's own (resolved) arguments say it already:
+            # its surveys (and the survey nodes they interpolate, ``*_surveys``, the scale's
+            # survey sizes)
             config.pop("data", None)
+            for key in [k for k in config if k.endswith("_surveys")]:
+                config.pop(key)
+            if isinstance(config.get("scale"), dict):
+                config["scale"].pop("survey", None)
         record["config"] = config
     return record
 

@@ -189,8 +189,10 @@ def test_the_export_command_writes_checks_and_refuses_in_one_line(tiny_run, tmp_
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
-    # --force replaces; the predictions check passes again
+    # --force replaces; the same checkpoint gives the same bytes
+    digest = sha256(out / "mine.safetensors")
     assert main(["export", str(ckpt), "--out", str(out), "--name", "mine", "--force"]) == 0
+    assert sha256(out / "mine.safetensors") == digest
 
 
 def test_the_shipped_model_is_valid_when_the_package_has_one():
