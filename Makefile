@@ -190,12 +190,3 @@ scaling-study: install ## Cost vs survey size: XTF import, draping, CNN inferenc
 .PHONY: tile-seams
 tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF survey: seam steps and MAE against the MBES, one fit at a time -> outputs/tile_seams/
 	$(BIN)/python -m studies.tile_seams --out outputs/tile_seams $(ARGS)
-
-.PHONY: scaling-study
-scaling-study: install ## Cost vs survey size: XTF import, draping, CNN inference, SIREN fit at 1x/4x/16x the demo survey, one thread; exponents + figure (~35 min on a busy 2-core CPU) -> outputs/scaling_study/
-	$(BIN)/python -m studies.scaling_study --out outputs/scaling_study $(ARGS)
-	$(BIN)/python -m studies.scaling_study --long-line --sizes-mb 50 500 --out outputs/scaling_study
-
-.PHONY: tile-seams
-tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF survey: seam steps and MAE against the MBES, one fit at a time -> outputs/tile_seams/
-	$(BIN)/python -m studies.tile_seams --out outputs/tile_seams $(ARGS)
