@@ -36,8 +36,12 @@ def test_summary_ratios_and_table():
     spin, passive, one = rows["t2_spin"], rows["t2_passive"], rows["t1"]
     assert spin["quiet_s"] == pytest.approx(0.11) and spin["busy_s"] == pytest.approx(0.70)
     assert spin["busy_over_quiet"] == pytest.approx(0.70 / 0.11)
-    assert passive["busy_vs_t2_spin_quiet"] == pytest.approx(0.14 / 0.11)
-    assert one["quiet_vs_t2_spin"] == pytest.approx(0.16 / 0.11)
+    assert passive["busy_vs_reference_quiet"] == pytest.approx(0.14 / 0.11)
+    assert one["quiet_vs_reference"] == pytest.approx(0.16 / 0.11)
+    assert {r["reference"] for r in rows.values()} == {"t2_spin"}
+    # without t2_spin the first policy run is the reference
+    (first, *_) = summarize([r for r in runs if r["policy"] != "t2_spin"])
+    assert first["reference"] == "t2_passive" and first["quiet_vs_reference"] == 1.0
     assert all(r["same_loss_in_every_run"] for r in rows.values())
     runs.append(_run("t1", "busy", 0.17, 0.52))  # another loss: not reproducible
     assert not {r["policy"]: r for r in summarize(runs)}["t1"]["same_loss_in_every_run"]
@@ -46,3 +50,4 @@ def test_summary_ratios_and_table():
     text = to_markdown({"command": "python -m benchmarks.thread_policy", "params": params,
                         "rows": summarize(runs)})  # fmt: skip
     assert "| cnn | t2_passive | 100.0 | 140.0 | 1.40 | 0.91 | 1.27 | yes |" in text
+    assert "| quiet vs t2_spin quiet |" in text
