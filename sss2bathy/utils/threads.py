@@ -134,7 +134,7 @@ class ThreadPolicy:
     cores: int
     source: str  # "torch_threads", "OMP_NUM_THREADS" (the user's), "cores"
     wait: str  # the OMP_WAIT_POLICY / GOMP_SPINCOUNT in force, "runtime default"
-    wait_source: str  # "sss2bathy", "user", "off", "loaded before the policy"
+    wait_source: str  # "sss2bathy", "user", "off", "unset", "loaded before the policy"
 
     def line(self) -> str:
         """The one INFO line: ``threads: torch 2 (the 2 usable cores), OpenMP waiting
@@ -152,6 +152,7 @@ class ThreadPolicy:
             "user": "set in the environment",
             "off": f"{POLICY_ENV}=off",
             "loaded before the policy": "torch was loaded before the policy could set it",
+            "unset": "OMP_WAIT_POLICY unset: idle threads spin before they sleep",
         }[self.wait_source]
         return f"threads: {count}, OpenMP waiting {self.wait} ({how})"
 
@@ -159,7 +160,7 @@ class ThreadPolicy:
 def _wait_in_force(environ: MutableMapping[str, str]) -> tuple[str, str]:
     set_keys = [k for k in WAIT_KEYS if k in environ]
     if not set_keys:
-        return "runtime default", "off" if policy_off(environ) else "user"
+        return "runtime default", "off" if policy_off(environ) else "unset"
     wait = ", ".join(f"{k}={environ[k]}" for k in set_keys)
     if _state["late"] and not any(_user_set(k, environ) for k in set_keys):
         return "runtime default", "loaded before the policy"

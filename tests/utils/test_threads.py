@@ -76,6 +76,8 @@ def test_policy_sets_torch_threads_and_says_so_in_one_line(
     policy = apply_thread_policy(None, announce=False)
     assert policy.source == "OMP_NUM_THREADS" and policy.wait_source == "user"
     assert "OMP_WAIT_POLICY=ACTIVE (set in the environment)" in policy.line()
+    monkeypatch.delenv("OMP_WAIT_POLICY")  # a library caller that never set it
+    assert "(OMP_WAIT_POLICY unset: idle threads spin" in apply_thread_policy(1, False).line()
     with pytest.raises(ValueError, match="torch_threads: expected a positive integer"):
         apply_thread_policy(0)
 
