@@ -205,3 +205,69 @@ def test_map_config_checks_the_overlap_block_and_prints_the_score():
     note = overlap_unavailable(["line"], [0], 10)
     printed = MapResult(Path("."), "siren_lambert", "s", {}, False, overlap_note=note).summary()
     assert f"  off-track overlap score: {note}" in printed
+
+
+# ------------------------------------------------------------------ end to end (slow)
+@pytest.mark.slow
+def test_sss2bathy_map_scores_overlapping_lines_and_says_why_not_for_one(tmp_path):
+    """Two crossing tiny lines: each held out in turn (2 x 2 fits), overlap.json, metrics
+    and the printed verdict; one of them alone: one line saying the score is not computable."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from sss2bathy.io.xtf import write_xtf
+    from sss2bathy.sim import config as sim_config
+    from sss2bathy.sim import generate
+    from sss2bathy.utils.config import survey_preset
+
+    cfg = OmegaConf.create(survey_preset("synthetic_d1", "tiny", CONF))
+    cfg.name = "sim_tiny"
+    survey, _ = generate.generate_survey(
+        sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
+    )
+    folder = tmp_path / "lines"
+    lines = survey.split_lines("test")
+    assert len(lines) == 2
+    for line in lines:
+        write_xtf(line, folder / f"{line.name}.xtf", survey.origin)
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
+
+    def run(files: Path, run_dir: Path) -> subprocess.CompletedProcess:
+        args = [
+            f"files={files}", f"survey.crs={survey.origin['crs']}", "survey.n_bins=null",
+            "verdict.folds=0", "holdout.fraction=0", "verdict.overlap.enabled=true",
+            "verdict.overlap.min_points=3", "mosaic.placement=none", "scale=tiny",
+            "logger=none", "torch_threads=1", f"paths.data_dir={tmp_path / 'data'}",
+            f"paths.output_dir={tmp_path / 'outputs'}", f"hydra.run.dir={run_dir}",
+            'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
+        ]  # fmt: skip
+        return subprocess.run(
+            [sys.executable, "-m", "sss2bathy.cli.map", *args],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900,
+        )  # fmt: skip
+
+    proc = run(folder, tmp_path / "both")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    scored = json.loads((tmp_path / "both" / "overlap.json").read_text())
+    assert scored["computable"] and scored["held_out"] == HELD_OUT_LINES
+    assert {ln["line"] for ln in scored["lines"]} == {ln.name for ln in lines}
+    assert set(scored["methods"]) == {"siren_lambert", HEIGHTS_ONLY, PLANE}
+    assert scored["n_points"] >= 3 and scored["outcome"] in (
+        "helped",
+        "did not help",
+        "inconclusive",
+    )
+    metrics = json.loads((tmp_path / "both" / "metrics.json").read_text())
+    assert metrics["verdict/overlap/siren_lambert/mae_mean"] == pytest.approx(
+        scored["methods"]["siren_lambert"]["mean"]
+    )
+    assert "OVERLAP VERDICT:" in proc.stdout and "held-out lines: line_" in proc.stdout
+    one = tmp_path / "one"
+    proc = run(folder / f"{lines[0].name}.xtf", one)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    note = json.loads((one / "overlap.json").read_text())
+    assert note["computable"] is False and "one line" in note["reason"]
+    assert "off-track overlap score: not computable: the survey has one line" in proc.stdout
+    assert not (one / "overlap").exists()  # no fit was made for it
