@@ -3,47 +3,27 @@ train_surveys / val_surveys / overlap_bins), on small built surveys."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sss2bathy.data.windows import SidescanWindowDataModule, line_windows, union_envelopes
-from sss2bathy.geometry import attitude_to_rotation
-from sss2bathy.survey import BathyGrid, SidescanLine, Survey
+from sss2bathy.survey import Survey
+from tests.data.test_windows import _hilly_grid, _line
 
 
-def _grid() -> BathyGrid:
-    cell = 0.5
-    x = np.arange(-40.0, 40.0 + cell / 2, cell)
-    y = np.arange(-10.0, 60.0 + cell / 2, cell)
-    X, Y = np.meshgrid(x, y)
-    return BathyGrid(
-        -18.0 + 1.5 * np.sin(X / 4.0) * np.cos(Y / 5.0), float(x[0]), float(y[0]), cell
-    )
-
-
-def _line(name: str, x: float, n_bins: int, r_max: float) -> SidescanLine:
-    n = 40
-    hd = np.zeros(n)
-    pos = np.stack([np.full(n, x), np.linspace(0, 45, n), np.full(n, -8.0)], 1)
-    intensity = np.full((n, 2, n_bins), 40.0, np.float32)
-    return SidescanLine(
-        name=name,
-        time_s=np.arange(n) * 0.1,
-        position=pos,
-        rotation=attitude_to_rotation(hd, hd, hd),
-        altitude_m=np.full(n, 10.0, np.float32),
-        intensity=intensity,
-        range_m=np.linspace(0.4, r_max, n_bins),
-    )
+def _wide_line(name: str, x: float, n_bins: int, r_max: float):
+    line = _line(name, x, n_bins=n_bins)
+    return dataclasses.replace(line, range_m=np.linspace(0.4, r_max, n_bins))
 
 
 def _survey(root: Path, name: str, n_train: int, n_bins: int, r_max: float) -> dict:
-    lines = [_line(f"t{i}", -12.0 + 8.0 * i, n_bins, r_max) for i in range(n_train)]
-    lines.append(_line("test0", 2.0, n_bins, r_max))
+    lines = [_wide_line(f"t{i}", -12.0 + 8.0 * i, n_bins, r_max) for i in range(n_train)]
+    lines.append(_wide_line("test0", 2.0, n_bins, r_max))
     splits = {"train": [f"t{i}" for i in range(n_train)], "test": ["test0"]}
-    folder = Survey(name, lines, _grid(), splits).save(root / name)
+    folder = Survey(name, lines, _hilly_grid(), splits).save(root / name)
     return {"kind": "folder", "path": str(folder)}
 
 
