@@ -5,6 +5,11 @@ truncated tail can be skipped) and parses each packet with pyxtf's own classes
 (``XTFFileHeader``, ``XTFPingHeader``, ``XTFAttitudeData``). Writing builds the same
 structures and serialises them with their ``to_bytes``; ``pyxtf.xtf_read`` reads the result.
 
+Memory: the parsed pings keep where their samples lie in the file, not the samples; those
+are read and resampled a few MB at a time into the float32 waterfall, and the parser hands
+back the pages of the file it has mapped as it goes. A line of any size imports in memory
+that grows with its pings x ``n_bins`` (the waterfall returned), not with the file.
+
 Fields read, per sonar ping (``XTFPingHeader``, header type 0):
 
 * time: ``Year Month Day Hour Minute Second HSeconds`` (UTC, 10 ms resolution);
