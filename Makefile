@@ -1,4 +1,5 @@
-# sss2bathy — every command a user needs. `make` (or `make help`) lists them.
+# sss2bathy — every command a user needs. `make` (or `make help`) lists them, grouped under
+# the `##@` headings below (a target's help is its `## ...` comment).
 # ARGS is passed through to Hydra, e.g.  make siren-cnn-n2d ARGS="trainer.max_epochs=50 seed=2"
 
 SHELL := /bin/bash
@@ -15,6 +16,8 @@ export SSS2BATHY_ROOT := $(CURDIR)
 .PHONY: help install test test-slow lint format demo prepare map report results paper \
 	sweep-example sweep-siren bench schedule-study tb clean
 
+##@ Install and check
+
 help: ## Show this help (target names in colour only on a terminal)
 	@if [ -t 1 ]; then on=$$'\033[36m'; off=$$'\033[0m'; else on=; off=; fi; \
 	grep -hE '^([a-zA-Z0-9_-]+:.*?## |##@ )' $(MAKEFILE_LIST) | \
@@ -22,14 +25,14 @@ help: ## Show this help (target names in colour only on a terminal)
 			/^##@ / {printf "%s%s\n", (n++ ? "\n" : ""), substr($$0, 5); next} \
 			{printf "  %s%-18s%s %s\n", on, $$1, off, $$2}'
 
+install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
+
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q "$(TORCH_SPEC)"
 	$(BIN)/pip install -q -e '.[dev]'
 	@touch $(STAMP)
-
-install: $(STAMP) ## Create .venv and install the package (CPU torch first); idempotent
 
 # The default tier on every core (at most 4 workers; each test file stays on one worker, so a
 # file's fixtures are built once): about half the serial time on 2 cores (docs/performance_log.md).
@@ -49,8 +52,13 @@ format: install ## Apply ruff formatting and safe fixes
 	$(BIN)/ruff check --fix .
 	$(BIN)/ruff format .
 
+##@ The paper's pipeline (SCALE=tiny|demo|paper, ARGS=<Hydra overrides>)
+
 demo: install ## The whole paper pipeline at demo scale on the synthetic surveys, then the report
 	$(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) $(ARGS)
+
+paper: install ## Every experiment at scale=paper (GPU), then the report
+	$(BIN)/python -m sss2bathy.cli.pipeline scale=paper $(ARGS)
 
 prepare: install ## Generate + drape the synthetic surveys (cached)
 	$(BIN)/sss2bathy-prepare data/survey=synthetic_d1 scale=$(SCALE) $(ARGS)
@@ -74,22 +82,19 @@ siren-lambert: ## Paper experiment: Lambertian baseline, 12 test lines
 d2: ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
 d3: ## Stress site: another sonar (CNN-N2d and Lambert on synthetic_d3; trains a CNN if none)
 
-map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> map.tif, map.png, metrics.json
-	@test -n "$(XTF)" || { echo "make map: expected XTF=<folder, file or glob of .xtf files>, found none"; exit 2; }
-	$(BIN)/python -m sss2bathy.cli.map 'files=$(XTF)' scale=$(SCALE) $(if $(CKPT),'cnn_checkpoint=$(CKPT)') $(ARGS)
-
-.PHONY: xtf-study
-xtf-study: install ## Generated AUV XTF surveys without MBES: held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
-	OMP_NUM_THREADS=1 $(BIN)/python -m studies.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
-
 report: install ## Gather the latest run of each experiment into outputs/report/
 	$(BIN)/sss2bathy-report $(ARGS)
 
 results: install ## The report, then its tables into docs/results.md and the README's results (after make demo)
 	$(BIN)/sss2bathy-report --publish $(ARGS)
 
-paper: install ## Every experiment at scale=paper (GPU), then the report
-	$(BIN)/python -m sss2bathy.cli.pipeline scale=paper $(ARGS)
+##@ Your own survey
+
+map: install ## Your own survey: XTF=<files/folder/glob> [CKPT=<cnn ckpt>] -> map.tif, map.png, metrics.json
+	@test -n "$(XTF)" || { echo "make map: expected XTF=<folder, file or glob of .xtf files>, found none"; exit 2; }
+	$(BIN)/python -m sss2bathy.cli.map 'files=$(XTF)' scale=$(SCALE) $(if $(CKPT),'cnn_checkpoint=$(CKPT)') $(ARGS)
+
+##@ Sweeps
 
 sweep-example: install ## A small Hydra multirun sweep (w_H x seed) on SIREN-GT-N2d
 	$(BIN)/sss2bathy-train -m experiment=siren_gt_n2d scale=$(SCALE) model.w_height=0.1,1,10 seed=1,2 $(ARGS)
@@ -98,8 +103,11 @@ EXPERIMENT ?= siren_lambert
 sweep-siren: install ## Optuna search of a SIREN fit (w_H, lr, omega0, lr decay) on the held-out altimeter MAE, no MBES needed [EXPERIMENT=siren_lambert]
 	$(BIN)/sss2bathy-train -m experiment=$(EXPERIMENT) hparams_search=siren_optuna scale=$(SCALE) $(ARGS)
 
-bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
-	$(BIN)/python -m benchmarks $(ARGS)
+##@ Studies (tables and figures under outputs/)
+
+.PHONY: xtf-study
+xtf-study: install ## Generated AUV XTF surveys without MBES: held-out altimeter vs interpolation, 3 seeds, one fit at a time [CKPT=<cnn ckpt>] -> outputs/xtf_study/
+	OMP_NUM_THREADS=1 $(BIN)/python -m studies.xtf_study --scale $(SCALE) --out outputs/xtf_study $(if $(CKPT),--cnn-checkpoint '$(CKPT)') $(ARGS)
 
 # a CNN of this scale for the studies that read one: trained only if none exists
 CNN_IF_NONE = $(BIN)/python -m sss2bathy.cli.pipeline scale=$(SCALE) needs=[cnn] $(ARGS)
@@ -163,16 +171,25 @@ BUDGET ?= 20
 paper-cpu-study: install ## Paper-scale d1 on a CPU: prepared once, SIREN-GT-N2d and Lambert at the paper and budget schedules, BUDGET min each -> outputs/paper_cpu_study/
 	$(BIN)/python -m studies.paper_cpu_study --scale paper --budget-min $(BUDGET) $(ARGS)
 
-tb: install ## TensorBoard on outputs/
-	$(BIN)/tensorboard --logdir outputs/ --bind_all
+.PHONY: scaling-study
+scaling-study: install ## Cost vs survey size: XTF import, draping, CNN inference, SIREN fit at 1x/4x/16x the demo survey, one thread; exponents + figure (~35 min on a busy 2-core CPU) -> outputs/scaling_study/
+	$(BIN)/python -m studies.scaling_study --out outputs/scaling_study $(ARGS)
+	$(BIN)/python -m studies.scaling_study --long-line --sizes-mb 50 500 --out outputs/scaling_study
 
-clean: ## Remove caches and outputs (keeps data/ and .venv)
-	rm -rf outputs/runs outputs/multiruns outputs/report outputs/bench .pytest_cache .ruff_cache
-	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+.PHONY: tile-seams
+tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF survey: seam steps and MAE against the MBES, one fit at a time -> outputs/tile_seams/
+	$(BIN)/python -m studies.tile_seams --out outputs/tile_seams $(ARGS)
+
+##@ Models
 
 .PHONY: pretrain
 pretrain: install ## The pretrained normal CNN on six simulated seabeds with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~1 h on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
 	$(BIN)/sss2bathy-train experiment=pretrain scale=$(SCALE) torch_threads=$${TORCH_THREADS:-1} $(ARGS)
+
+##@ Benchmarks and tools
+
+bench: install ## Benchmarks -> outputs/bench/ (JSON + Markdown)
+	$(BIN)/python -m benchmarks $(ARGS)
 
 .PHONY: thread-bench
 thread-bench: install ## Thread policies under load: demo CNN and SIREN steps, 2 threads spinning / passive / 1 thread, quiet and beside a nice-19 busy loop -> outputs/thread_policy/
@@ -182,11 +199,9 @@ thread-bench: install ## Thread policies under load: demo CNN and SIREN steps, 2
 gpu-check: install ## On a CUDA GPU (<= 10 min): paper-scale SIREN-GT-N2d to within 10 % of its best map, one paper-width CNN epoch, the GPU's name and memory -> outputs/gpu_check/ (no GPU: one line, exit 0)
 	$(BIN)/python -m studies.gpu_check $(ARGS)
 
-.PHONY: scaling-study
-scaling-study: install ## Cost vs survey size: XTF import, draping, CNN inference, SIREN fit at 1x/4x/16x the demo survey, one thread; exponents + figure (~35 min on a busy 2-core CPU) -> outputs/scaling_study/
-	$(BIN)/python -m studies.scaling_study --out outputs/scaling_study $(ARGS)
-	$(BIN)/python -m studies.scaling_study --long-line --sizes-mb 50 500 --out outputs/scaling_study
+tb: install ## TensorBoard on outputs/
+	$(BIN)/tensorboard --logdir outputs/ --bind_all
 
-.PHONY: tile-seams
-tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF survey: seam steps and MAE against the MBES, one fit at a time -> outputs/tile_seams/
-	$(BIN)/python -m studies.tile_seams --out outputs/tile_seams $(ARGS)
+clean: ## Remove caches and outputs (keeps data/ and .venv)
+	rm -rf outputs/runs outputs/multiruns outputs/report outputs/bench .pytest_cache .ruff_cache
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
