@@ -969,6 +969,15 @@ def run_verdict_study(
     return rows
 
 
+def _or_one_line(study: Any, *args: Any, **kwargs: Any) -> Any:
+    """``study(*args, **kwargs)``, or None after one stderr line when it fails."""
+    try:
+        return study(*args, **kwargs)
+    except (RuntimeError, ValueError, FileNotFoundError) as exc:
+        print(f"xtf_study: {exc}", file=sys.stderr)
+        return None
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m studies.xtf_study [--seeds ...] [--cnn-checkpoint PATH] ...``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -1002,13 +1011,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     if args.verdict_folds:
         out = args.out or "outputs/verdict_study"
-        try:
-            vrows = run_verdict_study(
-                out, args.seeds, args.scale, args.verdict_folds, args.methods[0],
-                extra=args.extra, map_args=args.map_args, rerun=args.rerun,
-            )  # fmt: skip
-        except (RuntimeError, ValueError, FileNotFoundError) as exc:
-            print(f"xtf_study: {exc}", file=sys.stderr)
+        vrows = _or_one_line(
+            run_verdict_study, out, args.seeds, args.scale, args.verdict_folds, args.methods[0],
+            extra=args.extra, map_args=args.map_args, rerun=args.rerun,
+        )  # fmt: skip
+        if vrows is None:
             return 1
         print(verdict_to_markdown(vrows))
         print(f"written: {Path(out) / 'verdict_study.md'}, {Path(out) / 'verdict_study.csv'}")
@@ -1018,21 +1025,12 @@ def main(argv: list[str] | None = None) -> int:
         if v not in VARIANTS:
             print(f"--variants: expected some of {sorted(VARIANTS)}, found {v!r}", file=sys.stderr)
             return 2
-    try:
-        rows = run_study(
-            args.out,
-            args.seeds,
-            args.methods,
-            args.variants,
-            scale=args.scale,
-            cnn_checkpoint=args.cnn_checkpoint,
-            cnn_variants=args.cnn_variants,
-            extra=args.extra,
-            map_args=args.map_args,
-            rerun=args.rerun,
-        )
-    except (RuntimeError, ValueError, FileNotFoundError) as exc:
-        print(f"xtf_study: {exc}", file=sys.stderr)
+    rows = _or_one_line(
+        run_study, args.out, args.seeds, args.methods, args.variants, scale=args.scale,
+        cnn_checkpoint=args.cnn_checkpoint, cnn_variants=args.cnn_variants, extra=args.extra,
+        map_args=args.map_args, rerun=args.rerun,
+    )  # fmt: skip
+    if rows is None:
         return 1
     print(to_markdown(rows))
     print(f"written: {Path(args.out) / 'xtf_study.md'}, {Path(args.out) / 'xtf_study.csv'}")
