@@ -88,13 +88,17 @@ def resolved_config(path: Path) -> dict[str, Any]:
             return {k: walk(v, f"{key}.{k}" if key else str(k)) for k, v in node.items()}
         if isinstance(node, list):
             return [walk(v, f"{key}[{i}]") for i, v in enumerate(node)]
+        if isinstance(node, str) and "${hydra:" in node:
+            # the run's own folders: machine-local, and resolvable only inside a Hydra run
+            # (or wherever one left its global state), so always kept as written
+            return node
         if isinstance(node, str) and "${" in node:
             try:
                 value = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
                 if isinstance(value, DictConfig | ListConfig):
                     value = OmegaConf.to_container(value, resolve=True)
                 return value
-            except Exception:  # noqa: BLE001 - a resolver of the run (hydra:): keep the text
+            except Exception:  # noqa: BLE001 - a resolver only the run had: keep the text
                 return node
         return node
 
