@@ -15,6 +15,9 @@ loads it, so each policy gets its own process with its own environment:
   ~300000 iterations, ~ms, at every barrier before sleeping);
 * ``t2_passive``: the same threads, ``OMP_WAIT_POLICY=PASSIVE`` (a waiting thread sleeps at
   once, :mod:`sss2bathy.utils.threads`);
+* ``t2_spin10k``, ``t2_spin1k``: the same threads spinning at most ``GOMP_SPINCOUNT`` =
+  10000 / 1000 rounds before they sleep (bounded spinning: short waits stay cheap, a
+  descheduled partner costs little);
 * ``t1``: one thread.
 
 Every policy runs quiet and beside one competing ``nice -n 19`` busy loop (``python -c
@@ -48,6 +51,9 @@ from typing import Any
 POLICIES: dict[str, tuple[int | None, dict[str, str]]] = {
     "t2_spin": (None, {}),
     "t2_passive": (None, {"OMP_WAIT_POLICY": "PASSIVE"}),
+    # bounded spinning: a waiting thread spins this many rounds, then sleeps
+    "t2_spin10k": (None, {"GOMP_SPINCOUNT": "10000"}),
+    "t2_spin1k": (None, {"GOMP_SPINCOUNT": "1000"}),
     "t1": (1, {}),
 }
 WORKLOADS = ("cnn", "siren")
