@@ -38,7 +38,15 @@ import numpy as np
 
 from sss2bathy.io.xtf import read_xtf, write_xtf
 from sss2bathy.survey import BathyGrid, Survey
-from sss2bathy.survey.tiles import Tile, blend, border_bands, tile_layout, tile_weights
+from sss2bathy.survey.tiles import (
+    Tile,
+    blend,
+    border_bands,
+    nadir_in,
+    runs_of,
+    tile_layout,
+    tile_weights,
+)
 from sss2bathy.utils.atomic import atomic_write_text
 from studies.tables import fmt_cell, markdown_table, to_csv, write_tables
 from studies.xtf_study import (
@@ -59,22 +67,6 @@ MAP_ARGS = (
 
 
 # ----------------------------------------------------------------------------- pure parts
-def nadir_in(position: np.ndarray, bounds: Sequence[float], margin_m: float) -> np.ndarray:
-    """``(P,)`` bool: pings whose nadir ``position[:, :2]`` lies within ``bounds`` widened by
-    ``margin_m``."""
-    x0, x1, y0, y1 = bounds
-    x, y = position[:, 0], position[:, 1]
-    return (x >= x0 - margin_m) & (x <= x1 + margin_m) & (y >= y0 - margin_m) & (y <= y1 + margin_m)
-
-
-def runs_of(keep: np.ndarray, min_pings: int) -> list[slice]:
-    """The runs of consecutive True in ``keep`` at least ``min_pings`` long."""
-    k = np.concatenate([[False], np.asarray(keep, bool), [False]])
-    starts = np.flatnonzero(k[1:] & ~k[:-1])
-    ends = np.flatnonzero(~k[1:] & k[:-1])
-    return [slice(int(a), int(b)) for a, b in zip(starts, ends, strict=True) if b - a >= min_pings]
-
-
 def hard_cut(tiles: Sequence[Tile], maps: Sequence[np.ndarray], x: np.ndarray, y: np.ndarray):
     """Each point from the one tile whose core holds it (no blend): what tiles without an
     overlap give."""

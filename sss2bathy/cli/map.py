@@ -35,6 +35,14 @@ from sss2bathy.cli._common import (
     log_config,
     setup_environment,
 )
+from sss2bathy.cli.map_tiles import (
+    is_tile_job,
+    register_resolver,
+    run_tile_plan,
+    tile_settings,
+    tile_survey_config,
+    write_tile_record,
+)
 from sss2bathy.eval.overlap import OverlapResult
 from sss2bathy.eval.verdict import HEIGHTS_ONLY, INTERPOLATION, KFoldVerdict, kfold_verdict
 from sss2bathy.metrics.bathy import MAP_TAGS
@@ -92,6 +100,11 @@ HELP = CliHelp(
         ("holdout.block_m=M", "the verdict's held-out blocks, m of track (null: auto)"),
         ("mosaic.placement=P", "the sidescan mosaic: map (draped on the map) | flat | none"),
         ("logger=NAME", "tensorboard (default) | none"),
+        (
+            "tile.size_m=M",
+            "large surveys: plan overlapping tiles of at most M m (tile.overlap_m=30); "
+            "tile.index=K fits tile K (-m 'tile.index=range(0,N)'); sss2bathy-map-blend OUT",
+        ),
         ("torch_threads=N", "CPU threads of the fit (default: torch's)"),
         (
             "overrides=[...]",
@@ -201,6 +214,7 @@ def check_map_config(cfg: DictConfig) -> None:
     verdict_folds(cfg)
     overlap_settings(cfg)
     uncertainty_scale(cfg)
+    tile_settings(cfg)
 
 
 def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[str]:
@@ -249,6 +263,10 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
 
             user = [str(o) for o in cfg.get("overrides") or []]
             apply_map_settings(train_cfg, scale_of_xtf_files(survey), user)
+        # a tile job (tile.index): the pings of its tile, a survey folder cut from the import
+        tile_survey = tile_survey_config(cfg)
+        if tile_survey is not None:
+            train_cfg.data.survey = tile_survey
     return train_cfg
 
 
@@ -564,6 +582,13 @@ def run_overlap(
     settings = overlap_settings(cfg)
     if not settings["enabled"]:
         return None, None
+    if tile_survey_config(cfg) is not None:
+        reason = (
+            "not computed in a tile job (tile.index): it holds out whole lines, which a tile "
+            "cuts; score the blended map's survey untiled"
+        )
+        log.info("verdict.overlap: %s", reason)
+        return None, reason
     subject = map_experiment(cfg)
     out_json = Path(run_dir) / "overlap.json"
     reason: str | None = None
@@ -658,6 +683,8 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     # validates it (once)
     apply_extras(train_cfg, print_config=False, validate=False)
     result = fit(train_cfg, run_dir, on_checked=lambda: log_config(train_cfg, run_dir))
+    if is_tile_job(cfg):
+        write_tile_record(cfg, Path(run_dir))
     metrics = {}
     for key, value in result.metrics.items():
         try:
@@ -913,6 +940,7 @@ def add_to_metrics_json(path: Path, values: Mapping[str, float]) -> None:
 
 
 setup_environment()
+register_resolver()
 
 
 @hydra_entry("map", help=HELP, check=check_map_config, aliases=KEY_ALIASES)
@@ -920,6 +948,10 @@ def main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
     runtime = HydraConfig.get().runtime
+    settings = tile_settings(cfg)
+    if settings is not None and settings["index"] is None:  # the tile plan and its commands
+        print("\n".join(run_tile_plan(cfg, Path(runtime.output_dir))), flush=True)
+        return None
     result = run_map(cfg, Path(runtime.output_dir), dict(runtime.choices))
     print("\n".join(result.summary()), flush=True)
     return result.score()

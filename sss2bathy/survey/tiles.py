@@ -17,16 +17,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
+
+from sss2bathy.survey.model import SidescanLine
 
 __all__ = [
     "Tile",
     "blend",
     "border_bands",
+    "cut_lines",
+    "footprint_bounds",
+    "nadir_in",
+    "runs_of",
     "taper",
+    "tile_from_dict",
     "tile_layout",
+    "tile_to_dict",
     "tile_weights",
 ]
 
@@ -211,3 +220,83 @@ def border_bands(tiles: Sequence[Tile], x: np.ndarray, y: np.ndarray, width_m: f
         if not t.edges[3]:  # the north border
             near |= (np.abs(y - cy1) <= half) & inside_x
     return near
+
+
+def tile_to_dict(tile: Tile) -> dict[str, Any]:
+    """A tile as plain JSON-able values (:func:`tile_from_dict` reads it back)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(tile).items()}
+
+
+def tile_from_dict(d: Any) -> Tile:
+    """The :class:`Tile` of :func:`tile_to_dict`."""
+    return Tile(
+        index=tuple(int(v) for v in d["index"]),  # type: ignore[arg-type]
+        core=tuple(float(v) for v in d["core"]),  # type: ignore[arg-type]
+        bounds=tuple(float(v) for v in d["bounds"]),  # type: ignore[arg-type]
+        overlap_m=float(d["overlap_m"]),
+        edges=tuple(bool(v) for v in d["edges"]),  # type: ignore[arg-type]
+    )
+
+
+# ----------------------------------------------------------------------------- the pings
+def nadir_in(position: np.ndarray, bounds: Sequence[float], margin_m: float) -> np.ndarray:
+    """``(P,)`` bool: pings whose nadir ``position[:, :2]`` lies within ``bounds``
+    ``(x_min, x_max, y_min, y_max)`` widened by ``margin_m``."""
+    x0, x1, y0, y1 = bounds
+    x, y = position[:, 0], position[:, 1]
+    return (x >= x0 - margin_m) & (x <= x1 + margin_m) & (y >= y0 - margin_m) & (y <= y1 + margin_m)
+
+
+def runs_of(keep: np.ndarray, min_pings: int) -> list[slice]:
+    """The runs of consecutive True in ``keep`` at least ``min_pings`` long."""
+    k = np.concatenate([[False], np.asarray(keep, bool), [False]])
+    starts = np.flatnonzero(k[1:] & ~k[:-1])
+    ends = np.flatnonzero(~k[1:] & k[:-1])
+    return [slice(int(a), int(b)) for a, b in zip(starts, ends, strict=True) if b - a >= min_pings]
+
+
+def footprint_bounds(lines: Sequence[SidescanLine]) -> Bounds:
+    """``(x_min, x_max, y_min, y_max)`` of the lines' nadirs widened by the longest slant
+    range: every cell a bin can image (what a fit's map grid spans), the area a tile plan
+    covers."""
+    if not lines:
+        raise ValueError("lines: expected at least one line, found none")
+    xy = np.concatenate([ln.position[:, :2] for ln in lines])
+    reach = max(float(ln.range_m.max()) for ln in lines)
+    lo, hi = xy.min(0) - reach, xy.max(0) + reach
+    return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+
+
+def _ping_slice(line: SidescanLine, sl: slice, name: str) -> SidescanLine:
+    n = line.n_pings
+    extras = {k: v[sl] if np.ndim(v) and np.shape(v)[0] == n else v for k, v in line.extras.items()}
+    source = None if line.altitude_source is None else line.altitude_source[sl]
+    return replace(
+        line,
+        name=name,
+        time_s=line.time_s[sl],
+        position=line.position[sl],
+        rotation=line.rotation[sl],
+        altitude_m=line.altitude_m[sl],
+        intensity=line.intensity[sl],
+        extras=extras,
+        altitude_source=source,
+    )
+
+
+def cut_lines(
+    lines: Sequence[SidescanLine], bounds: Sequence[float], margin_m: float, min_pings: int
+) -> tuple[list[SidescanLine], int]:
+    """The runs of each line's pings whose nadir lies in ``bounds`` widened by ``margin_m``
+    (:func:`nadir_in`), at least ``min_pings`` long, as lines (a line that leaves and
+    re-enters gives one line per run: ``<name>_<k>``; a line kept whole keeps its name), and
+    the number of in-bounds pings left out in runs shorter than ``min_pings``."""
+    out, dropped = [], 0
+    for line in lines:
+        keep = nadir_in(line.position, bounds, margin_m)
+        runs = runs_of(keep, min_pings)
+        dropped += int(keep.sum()) - sum(r.stop - r.start for r in runs)
+        for k, sl in enumerate(runs):
+            whole = len(runs) == 1 and sl.start == 0 and sl.stop == line.n_pings
+            out.append(line if whole else _ping_slice(line, sl, f"{line.name}_{k}"))
+    return out, dropped
