@@ -102,8 +102,7 @@ HELP = CliHelp(
         ("logger=NAME", "tensorboard (default) | none"),
         (
             "tile.size_m=M",
-            "large surveys: plan overlapping tiles of at most M m (tile.overlap_m=30); "
-            "tile.index=K fits tile K (-m 'tile.index=range(0,N)'); sss2bathy-map-blend OUT",
+            "large surveys: overlapping tiles of at most M m (docs/large_surveys.md)",
         ),
         ("torch_threads=N", "CPU threads of the fit (default: torch's)"),
         (
@@ -133,6 +132,14 @@ def default_survey_name(files: Any) -> str:
     stem = path.stem if path.suffix.lower() == ".xtf" else path.name
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "survey"
     return name if name.lower().startswith("xtf") else f"xtf_{name}"
+
+
+def map_survey_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The XTF import of a map config (``survey``, plain), its ``name`` defaulted from the
+    files (:func:`default_survey_name`)."""
+    survey = OmegaConf.to_container(cfg["survey"], resolve=True)
+    survey["name"] = survey.get("name") or default_survey_name(survey["files"])
+    return survey
 
 
 def map_experiment(cfg: Mapping[str, Any]) -> str:
@@ -234,8 +241,7 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
     from hydra import compose
 
     ckpt = map_cnn_checkpoint(cfg)
-    survey = OmegaConf.to_container(cfg.survey, resolve=True)
-    survey["name"] = survey.get("name") or default_survey_name(survey["files"])
+    survey = map_survey_config(cfg)
     train_cfg = compose("train", overrides=train_overrides(cfg, choices))
     with open_dict(train_cfg):
         train_cfg.data.survey = survey
@@ -264,7 +270,7 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
             user = [str(o) for o in cfg.get("overrides") or []]
             apply_map_settings(train_cfg, scale_of_xtf_files(survey), user)
         # a tile job (tile.index): the pings of its tile, a survey folder cut from the import
-        tile_survey = tile_survey_config(cfg)
+        tile_survey = tile_survey_config(cfg, survey)
         if tile_survey is not None:
             train_cfg.data.survey = tile_survey
     return train_cfg
@@ -582,7 +588,7 @@ def run_overlap(
     settings = overlap_settings(cfg)
     if not settings["enabled"]:
         return None, None
-    if tile_survey_config(cfg) is not None:
+    if tile_survey_config(cfg, map_survey_config(cfg)) is not None:
         reason = (
             "not computed in a tile job (tile.index): it holds out whole lines, which a tile "
             "cuts; score the blended map's survey untiled"
@@ -684,7 +690,7 @@ def run_map(cfg: DictConfig, run_dir: Path, choices: Mapping[str, Any]) -> MapRe
     apply_extras(train_cfg, print_config=False, validate=False)
     result = fit(train_cfg, run_dir, on_checked=lambda: log_config(train_cfg, run_dir))
     if is_tile_job(cfg):
-        write_tile_record(cfg, Path(run_dir))
+        write_tile_record(cfg, map_survey_config(cfg), Path(run_dir))
     metrics = {}
     for key, value in result.metrics.items():
         try:
@@ -950,7 +956,8 @@ def main(cfg: DictConfig) -> float | None:
     runtime = HydraConfig.get().runtime
     settings = tile_settings(cfg)
     if settings is not None and settings["index"] is None:  # the tile plan and its commands
-        print("\n".join(run_tile_plan(cfg, Path(runtime.output_dir))), flush=True)
+        plan = run_tile_plan(cfg, map_survey_config(cfg), Path(runtime.output_dir))
+        print("\n".join(plan), flush=True)
         return None
     result = run_map(cfg, Path(runtime.output_dir), dict(runtime.choices))
     print("\n".join(result.summary()), flush=True)

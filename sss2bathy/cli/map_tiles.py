@@ -102,24 +102,19 @@ def tile_settings(cfg: Mapping[str, Any]) -> dict[str, Any] | None:
     }
 
 
-def _survey_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    from sss2bathy.cli.map import default_survey_name
-
-    survey = OmegaConf.to_container(cfg["survey"], resolve=True)
-    survey["name"] = survey.get("name") or default_survey_name(survey["files"])
-    return survey
-
-
-def plan_tiles(cfg: Mapping[str, Any]) -> tuple[list[Tile], Any, dict[str, Any]] | None:
-    """``(tiles, full survey, settings)`` of a map config with ``tile.size_m`` set (the
-    survey imported or reused), else None."""
+def plan_tiles(
+    cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any]
+) -> tuple[list[Tile], Any, dict[str, Any]] | None:
+    """``(tiles, full survey, settings)`` of a map config with ``tile.size_m`` set, else
+    None; ``survey_cfg``: its XTF import (``data/survey=xtf`` with the survey's name:
+    :func:`sss2bathy.cli.map.map_survey_config`), imported or reused."""
     settings = tile_settings(cfg)
     if settings is None:
         return None
     from sss2bathy.data.sources import load_survey
     from sss2bathy.survey.tiles import footprint_bounds
 
-    survey, _ = load_survey(_survey_config(cfg), str(cfg["paths"]["data_dir"]))
+    survey, _ = load_survey(survey_cfg, str(cfg["paths"]["data_dir"]))
     bounds = footprint_bounds(survey.lines)
     try:
         tiles = tile_layout(bounds, settings["size_m"], settings["overlap_m"])
@@ -141,12 +136,14 @@ def _margin(settings: Mapping[str, Any], survey: Any) -> float:
     return max(float(ln.range_m.max()) for ln in survey.lines)
 
 
-def tile_survey_config(cfg: Mapping[str, Any]) -> dict[str, Any] | None:
+def tile_survey_config(
+    cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any]
+) -> dict[str, Any] | None:
     """The ``data.survey`` of a tile job (``tile.index`` set, a plan of two tiles or more):
     a survey folder of the runs of pings whose nadir lies within the tile widened by the
     margin (written once, reused while the import and the plan are unchanged); None
     otherwise (no tiles, the plan only, or one tile: the whole survey)."""
-    planned = plan_tiles(cfg)
+    planned = plan_tiles(cfg, survey_cfg)
     if planned is None:
         return None
     tiles, survey, settings = planned
@@ -225,13 +222,13 @@ def is_tile_job(cfg: Mapping[str, Any]) -> bool:
     return settings is not None and settings["index"] is not None
 
 
-def write_tile_record(cfg: Mapping[str, Any], run_dir: Path) -> Path:
+def write_tile_record(cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any], run_dir: Path) -> Path:
     """A tile job's ``tile.json`` (the plan, its index, the survey origin) and its
     ``map.tif``'s tags: the vertical reference of the XTF import (the tile's survey is a
     folder cut from it) and ``SSS2BATHY_TILE``."""
     from sss2bathy.io.export import TAG_PREFIX, VERTICAL_REFERENCE, add_geotiff_tags
 
-    tiles, survey, settings = plan_tiles(cfg)  # type: ignore[misc]
+    tiles, survey, settings = plan_tiles(cfg, survey_cfg)  # type: ignore[misc]
     index = settings["index"]
     record = {
         "index": index,
@@ -270,12 +267,14 @@ def _user_overrides() -> list[str]:
     ]
 
 
-def run_tile_plan(cfg: Mapping[str, Any], run_dir: Path) -> list[str]:
+def run_tile_plan(
+    cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any], run_dir: Path
+) -> list[str]:
     """The plan of a map config with ``tile.size_m`` and no ``tile.index``: ``tiles.json``
     in ``run_dir``, and the lines to print (the tiles, the multirun and blend commands)."""
     import shlex
 
-    tiles, survey, settings = plan_tiles(cfg)  # type: ignore[misc]
+    tiles, survey, settings = plan_tiles(cfg, survey_cfg)  # type: ignore[misc]
     margin = _margin(settings, survey)
     record = {
         "n_tiles": len(tiles),

@@ -15,6 +15,7 @@ import pytest
 import rasterio
 from omegaconf import OmegaConf
 
+from sss2bathy.cli.map import map_survey_config
 from sss2bathy.cli.map_blend import blend_tile_runs, read_tile_runs
 from sss2bathy.cli.map_tiles import TILE_JSON, plan_tiles, tile_settings, tile_survey_config
 from sss2bathy.survey import BathyGrid
@@ -90,20 +91,20 @@ def _map_cfg(folder: Path, crs: str, data_dir: Path, **tile) -> dict:
 def test_plan_covers_the_footprint_and_checks_the_index(tmp_path, tiny_xtf):
     folder, crs = tiny_xtf
     cfg = _map_cfg(folder, crs, tmp_path / "data", size_m=1000.0, index=0)
-    tiles, survey, _ = plan_tiles(cfg)
+    tiles, survey, _ = plan_tiles(cfg, map_survey_config(cfg))
     assert len(tiles) == 1 and tiles[0].bounds == footprint_bounds(survey.lines)
     # a plan of one tile is the untiled route: the job fits the whole imported survey
-    assert tile_survey_config(cfg) is None
+    assert tile_survey_config(cfg, map_survey_config(cfg)) is None
     x0, x1, y0, y1 = footprint_bounds(survey.lines)
     half = (x1 - x0) / 2 + 5.0
     cfg = _map_cfg(folder, crs, tmp_path / "data", size_m=[half + 1, y1 - y0 + 1], overlap_m=10.0)
-    tiles, _, _ = plan_tiles(cfg)
+    tiles, _, _ = plan_tiles(cfg, map_survey_config(cfg))
     assert [t.index for t in tiles] == [(0, 0), (1, 0)]
     cfg.tile.index = 2
     with pytest.raises(ValueError, match=r"^tile\.index: expected 0\.\.1 \(the plan's 2 tiles"):
-        plan_tiles(cfg)
+        plan_tiles(cfg, map_survey_config(cfg))
     cfg.tile.index = 1
-    tile_cfg = tile_survey_config(cfg)
+    tile_cfg = tile_survey_config(cfg, map_survey_config(cfg))
     from sss2bathy.survey import Survey
 
     cut = Survey.load(tile_cfg["path"])
@@ -138,7 +139,18 @@ def test_one_tile_blends_to_its_own_map(tmp_path):
     z = rng.normal(-20, 1, (41, 81)).astype(np.float32)
     z[:5, :7] = np.nan  # no coverage there
     run = _tile_run(tmp_path, 0, tiles, BathyGrid(z, 0.25, 0.25, 0.5))
-    blend_tile_runs(tmp_path)
+    from sss2bathy.io.export import write_geotiff
+
+    sigma = np.where(np.isfinite(z), 0.1 + 0.01 * np.arange(81), np.nan).astype(np.float32)
+    write_geotiff(
+        BathyGrid(sigma, 0.25, 0.25, 0.5), run / "uncertainty.tif", origin=ORIGIN,
+        mask=np.isfinite(sigma),
+    )  # fmt: skip
+    paths = blend_tile_runs(tmp_path)
+    assert {"map_tif", "map_png", "uncertainty_tif", "uncertainty_png"} <= set(paths)
+    np.testing.assert_allclose(
+        _read(paths["uncertainty_tif"])[0], _read(run / "uncertainty.tif")[0], rtol=1e-6
+    )
     got, transform, tags = _read(tmp_path / "map.tif")
     want, want_transform, want_tags = _read(run / "map.tif")
     assert transform == want_transform
@@ -217,7 +229,7 @@ def _run(args: list[str], tmp: Path, module: str = "sss2bathy.cli.map"):
 def test_two_tiles_fitted_and_blended_match_the_untiled_coverage(tmp_path, tiny_xtf):
     folder, crs = tiny_xtf
     cfg = _map_cfg(folder, crs, tmp_path / "data", size_m=1000.0)
-    _, survey, _ = plan_tiles(cfg)
+    _, survey, _ = plan_tiles(cfg, map_survey_config(cfg))
     x0, x1, y0, y1 = footprint_bounds(survey.lines)
     overlap = 10.0
     size = [f"{(x1 - x0) / 2 + overlap / 2 + 1:.1f}", f"{y1 - y0 + 1:.1f}"]
