@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-import sss2bathy.io.xtf as xtf
+import sss2bathy.io.xtf_packets as packets
 from sss2bathy.io.xtf import read_xtf, write_xtf
 from tests.io.conftest import synthetic_line
 
@@ -13,10 +13,10 @@ from tests.io.conftest import synthetic_line
 def test_parsed_pings_hold_no_samples(tmp_path, line, origin):
     path = tmp_path / "L0.xtf"
     write_xtf(line, path, origin)
-    parsed = xtf._parse_packets(path, 0)
+    parsed = packets.parse_packets(path, 0)
     assert len(parsed.pings) == line.n_pings
     for ping in parsed.pings:
-        assert all(isinstance(d, xtf._FileSamples) for d in ping.data)
+        assert all(isinstance(d, packets.FileSamples) for d in ping.data)
         assert [d.size for d in ping.data] == [line.n_bins, line.n_bins]
     # the offsets point at the samples pyxtf reads
     raw = np.frombuffer(path.read_bytes(), dtype=np.uint8)
@@ -34,8 +34,8 @@ def test_resampling_in_small_chunks_is_identical(tmp_path, origin, monkeypatch, 
     whole, stats = read_xtf(path, 64, origin=origin)
     whole_log = [r.getMessage() for r in caplog.records]
     caplog.clear()
-    monkeypatch.setattr(xtf, "_RESAMPLE_BYTES", 8)
-    monkeypatch.setattr(xtf, "_RELEASE_BYTES", 4096)  # hand back the map's pages often
+    monkeypatch.setattr(packets, "RESAMPLE_BYTES", 8)
+    monkeypatch.setattr(packets, "RELEASE_BYTES", 4096)  # hand back the map's pages often
     chunked, stats_c = read_xtf(path, 64, origin=origin)
     assert [r.getMessage() for r in caplog.records] == whole_log
     np.testing.assert_array_equal(chunked.intensity, whole.intensity)
