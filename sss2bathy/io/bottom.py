@@ -150,23 +150,81 @@ def running_median(
     return out
 
 
+@dataclass(frozen=True)
+class FirstReturnOptions:
+    """The settings of :func:`detect_first_return` (its Args say what each does), with their
+    defaults declared once; :meth:`check` refuses a bad one (``ValueError``)."""
+
+    smooth_bins: int = 3
+    smooth_pings: int = 3
+    floor_quantile: float = 0.1
+    top_quantile: float = 0.95
+    coarse_fraction: float = 0.5
+    noise_sigmas: float = 5.0
+    sustain_bins: int = 4
+    median_pings: int = 5
+    min_range_m: float = 0.0
+    blanking_m: float = 0.0
+    auto_blanking: bool = True
+    saturated_fraction: float = 0.5
+    max_fill_pings: int = 5
+
+    def check(self, n_bins: int) -> None:
+        """Every setting within its bounds for a waterfall of ``n_bins`` bins."""
+        if self.smooth_pings < 1:
+            raise ValueError(f"smooth_pings: expected >= 1, found {self.smooth_pings}")
+        if self.smooth_bins < 1 or not 1 <= self.sustain_bins <= n_bins:
+            raise ValueError(
+                f"smooth_bins/sustain_bins: expected >= 1 and sustain_bins <= {n_bins} bins, "
+                f"found {self.smooth_bins}/{self.sustain_bins}"
+            )
+        if self.median_pings < 1 or self.median_pings % 2 == 0:
+            raise ValueError(
+                f"median_pings: expected an odd number >= 1, found {self.median_pings}"
+            )
+        if not 0.0 < self.coarse_fraction < 1.0:
+            raise ValueError(
+                f"coarse_fraction: expected a value in (0, 1), found {self.coarse_fraction}"
+            )
+        if not self.noise_sigmas > 0:
+            raise ValueError(f"noise_sigmas: expected > 0, found {self.noise_sigmas}")
+        if not 0.0 <= self.floor_quantile < self.top_quantile <= 1.0:
+            raise ValueError(
+                "floor_quantile/top_quantile: expected 0 <= floor < top <= 1, "
+                f"found {self.floor_quantile}/{self.top_quantile}"
+            )
+        if not (np.isfinite(self.blanking_m) and self.blanking_m >= 0):
+            raise ValueError(f"blanking_m: expected a distance >= 0 (m), found {self.blanking_m}")
+        if not 0.0 < self.saturated_fraction <= 1.0:
+            raise ValueError(
+                f"saturated_fraction: expected a value in (0, 1], found {self.saturated_fraction}"
+            )
+        if self.max_fill_pings < 0:
+            raise ValueError(
+                f"max_fill_pings: expected an integer >= 0, found {self.max_fill_pings}"
+            )
+
+
+_F = FirstReturnOptions  # the defaults of detect_first_return's keywords
+
+
 def detect_first_return(
     waterfall: np.ndarray,
     range_m: np.ndarray,
     *,
-    smooth_bins: int = 3,
-    smooth_pings: int = 3,
-    floor_quantile: float = 0.1,
-    top_quantile: float = 0.95,
-    coarse_fraction: float = 0.5,
-    noise_sigmas: float = 5.0,
-    sustain_bins: int = 4,
-    median_pings: int = 5,
-    min_range_m: float = 0.0,
-    blanking_m: float = 0.0,
-    auto_blanking: bool = True,
-    saturated_fraction: float = 0.5,
-    max_fill_pings: int = 5,
+    smooth_bins: int = _F.smooth_bins,
+    smooth_pings: int = _F.smooth_pings,
+    floor_quantile: float = _F.floor_quantile,
+    top_quantile: float = _F.top_quantile,
+    coarse_fraction: float = _F.coarse_fraction,
+    noise_sigmas: float = _F.noise_sigmas,
+    sustain_bins: int = _F.sustain_bins,
+    median_pings: int = _F.median_pings,
+    min_range_m: float = _F.min_range_m,
+    blanking_m: float = _F.blanking_m,
+    auto_blanking: bool = _F.auto_blanking,
+    saturated_fraction: float = _F.saturated_fraction,
+    max_fill_pings: int = _F.max_fill_pings,
 ) -> BottomPicks:
     """Altitude (m) of the sonar above the seabed from the first bottom return of each ping.
 
@@ -204,36 +262,26 @@ def detect_first_return(
         raise ValueError(f"range_m: expected shape ({w.shape[1]},), found {r.shape}")
     if not np.all(np.isfinite(r)) or np.any(r <= 0) or np.any(np.diff(r) <= 0):
         raise ValueError("range_m: expected positive, finite, increasing slant ranges")
-    if smooth_pings < 1:
-        raise ValueError(f"smooth_pings: expected >= 1, found {smooth_pings}")
-    if smooth_bins < 1 or not 1 <= sustain_bins <= w.shape[1]:
-        raise ValueError(
-            f"smooth_bins/sustain_bins: expected >= 1 and sustain_bins <= {w.shape[1]} bins, "
-            f"found {smooth_bins}/{sustain_bins}"
-        )
-    if median_pings < 1 or median_pings % 2 == 0:
-        raise ValueError(f"median_pings: expected an odd number >= 1, found {median_pings}")
-    if not 0.0 < coarse_fraction < 1.0:
-        raise ValueError(f"coarse_fraction: expected a value in (0, 1), found {coarse_fraction}")
-    if not noise_sigmas > 0:
-        raise ValueError(f"noise_sigmas: expected > 0, found {noise_sigmas}")
-    if not 0.0 <= floor_quantile < top_quantile <= 1.0:
-        raise ValueError(
-            "floor_quantile/top_quantile: expected 0 <= floor < top <= 1, "
-            f"found {floor_quantile}/{top_quantile}"
-        )
-    if not (np.isfinite(blanking_m) and blanking_m >= 0):
-        raise ValueError(f"blanking_m: expected a distance >= 0 (m), found {blanking_m}")
-    if not 0.0 < saturated_fraction <= 1.0:
-        raise ValueError(
-            f"saturated_fraction: expected a value in (0, 1], found {saturated_fraction}"
-        )
-    if max_fill_pings < 0:
-        raise ValueError(f"max_fill_pings: expected an integer >= 0, found {max_fill_pings}")
+    o = FirstReturnOptions(
+        smooth_bins=smooth_bins,
+        smooth_pings=smooth_pings,
+        floor_quantile=floor_quantile,
+        top_quantile=top_quantile,
+        coarse_fraction=coarse_fraction,
+        noise_sigmas=noise_sigmas,
+        sustain_bins=sustain_bins,
+        median_pings=median_pings,
+        min_range_m=min_range_m,
+        blanking_m=blanking_m,
+        auto_blanking=auto_blanking,
+        saturated_fraction=saturated_fraction,
+        max_fill_pings=max_fill_pings,
+    )
+    o.check(w.shape[1])
 
     P, B = w.shape
-    rows, bins = np.arange(P), np.arange(B)
-    flags = bad_pings(w, saturated_fraction)
+    # 0. unusable pings get no pick
+    flags = bad_pings(w, o.saturated_fraction)
     bad = flags["nonfinite"] | flags["constant"] | flags["saturated"]
     empty = BottomPicks(
         np.full(P, np.nan), np.zeros(P, bool), np.zeros(P, bool), np.zeros(P, bool), bad, 0.0
@@ -241,61 +289,146 @@ def detect_first_return(
     if bad.all():
         return empty
     safe = np.where(np.isfinite(w), w, 0.0)
-    sat_level = safe[~bad].max()
-
-    good = np.flatnonzero(~bad)
-    wg = median_filter(safe[good], size=(min(smooth_pings, good.size), 1), mode="nearest")
-    w = np.zeros_like(safe)
-    w[good] = wg
-    s = uniform_filter1d(w, size=smooth_bins, axis=1, mode="nearest")
-
-    # Blanking: the configured zone, the ring-down of the median ping, saturated near field.
-    blank = int(np.searchsorted(r, blanking_m, side="left")) if blanking_m > 0 else 0
-    if auto_blanking:
-        blank = max(blank, _auto_blanking(s[good], coarse_fraction, smooth_bins))
-    blanking_used = float(r[blank - 1]) if 0 < blank <= B else 0.0
-    if blank >= B - sustain_bins:
+    # 1. smooth; 2. blanking
+    w, s = _smooth(safe, bad, o)
+    blank, blanking_used = _blanking(s[~bad], r, o)
+    if blank >= B - o.sustain_bins:
         return BottomPicks(
             empty.altitude_m, empty.picked, empty.interpolated, ~bad, bad, blanking_used
         )
+    blank_p, searchable = _searchable(safe, bad, blank, r, o)
+    # 3. coarse pick; 4.-5. water-column noise and the final threshold; 7. unsupported picks
+    floor, coarse_thr, coarse, found = _coarse_pick(s, searchable, bad, o)
+    mu, sigma = _water_column(w, s, searchable, coarse, floor, o)
+    first, unsupported = _fine_pick(s, mu, sigma, coarse_thr, searchable, coarse, blank_p, r, o)
+    rejected = found & unsupported
+    found &= ~rejected
+    # 6. sub-bin edge
+    altitude, found = _leading_edge(w, first, found, mu, sigma, coarse_thr, searchable, r, o)
+    # 8. along track
+    altitude, interpolated = _along_track(altitude, found, bad, o)
+    return BottomPicks(altitude, found, interpolated, rejected, bad, blanking_used)
+
+
+def _smooth(
+    safe: np.ndarray, bad: np.ndarray, o: FirstReturnOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1: ``(w, s)``: the usable pings median-filtered over ``smooth_pings`` pings along
+    track (bad pings 0), and ``w`` box-filtered over ``smooth_bins`` bins along range. Pure."""
+    good = np.flatnonzero(~bad)
+    wg = median_filter(safe[good], size=(min(o.smooth_pings, good.size), 1), mode="nearest")
+    w = np.zeros_like(safe)
+    w[good] = wg
+    return w, uniform_filter1d(w, size=o.smooth_bins, axis=1, mode="nearest")
+
+
+def _blanking(s_good: np.ndarray, r: np.ndarray, o: FirstReturnOptions) -> tuple[int, float]:
+    """Step 2: ``(first searchable bin, its range in m)``: the configured blanking zone, or the
+    ring-down of the median ping where ``auto_blanking`` finds a longer one. Pure."""
+    blank = int(np.searchsorted(r, o.blanking_m, side="left")) if o.blanking_m > 0 else 0
+    if o.auto_blanking:
+        blank = max(blank, _auto_blanking(s_good, o.coarse_fraction, o.smooth_bins))
+    return blank, float(r[blank - 1]) if 0 < blank <= r.size else 0.0
+
+
+def _searchable(
+    safe: np.ndarray, bad: np.ndarray, blank: int, r: np.ndarray, o: FirstReturnOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2, per ping: ``(first searchable bin (P,), searchable (P, B))``: beyond the
+    blanking, beyond a run of saturated samples from bin 0 (plus the smoothing), and at or
+    beyond ``min_range_m``. Pure."""
+    B = safe.shape[1]
+    sat_level = safe[~bad].max()
     saturated = safe >= sat_level * (1 - 1e-6)
     sat_run = np.where(saturated.all(axis=1), B, np.argmin(saturated, axis=1))
-    blank_p = np.maximum(blank, np.where(saturated[:, 0], sat_run + smooth_bins, 0))
-    searchable = (r[None, :] >= min_range_m) & (bins[None, :] >= blank_p[:, None])
+    blank_p = np.maximum(blank, np.where(saturated[:, 0], sat_run + o.smooth_bins, 0))
+    bins = np.arange(B)
+    searchable = (r[None, :] >= o.min_range_m) & (bins[None, :] >= blank_p[:, None])
+    return blank_p, searchable
 
-    floor = np.quantile(s, floor_quantile, axis=1)
-    top = np.quantile(s, top_quantile, axis=1)
-    coarse_thr = floor + coarse_fraction * (top - floor)
-    coarse, found = _first_sustained((s > coarse_thr[:, None]) & searchable, sustain_bins)
+
+def _coarse_pick(
+    s: np.ndarray, searchable: np.ndarray, bad: np.ndarray, o: FirstReturnOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 3: ``(floor, coarse threshold, coarse pick bin, found)`` per ping: the first
+    searchable sustained rise above ``floor + coarse_fraction (top - floor)``. Pure."""
+    floor = np.quantile(s, o.floor_quantile, axis=1)
+    top = np.quantile(s, o.top_quantile, axis=1)
+    coarse_thr = floor + o.coarse_fraction * (top - floor)
+    coarse, found = _first_sustained((s > coarse_thr[:, None]) & searchable, o.sustain_bins)
     found &= (top > floor) & ~bad
+    return floor, coarse_thr, coarse, found
 
-    # Water-column statistics between the blanking and the coarse pick (minus the smoothing),
-    # from the samples before range smoothing (independent), scaled to the smoothed signal.
-    column = searchable & (bins[None, :] < (coarse - smooth_bins)[:, None])
+
+def _water_column(
+    w: np.ndarray,
+    s: np.ndarray,
+    searchable: np.ndarray,
+    coarse: np.ndarray,
+    floor: np.ndarray,
+    o: FirstReturnOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4: ``(mu, sigma)`` per ping: mean and standard deviation (scaled to the smoothed
+    signal) of the samples between the blanking and the coarse pick minus the smoothing;
+    where they are fewer than 3, ``floor`` and the robust spread of the darkest bins. Pure."""
+    bins = np.arange(w.shape[1])
+    column = searchable & (bins[None, :] < (coarse - o.smooth_bins)[:, None])
     enough = column.sum(axis=1) >= 3
     col = np.where(column & enough[:, None], w, np.nan)
     col[~enough] = 0.0
     mu = np.where(enough, np.nanmean(col, axis=1), floor)
-    sd = np.nanstd(col, axis=1) / np.sqrt(smooth_bins)
+    sd = np.nanstd(col, axis=1) / np.sqrt(o.smooth_bins)
     dark = np.where(s <= floor[:, None], s, np.nan)
     dark[np.isnan(dark).all(axis=1)] = 0.0
     mad = 1.4826 * np.nanmedian(np.abs(dark - np.nanmedian(dark, axis=1)[:, None]), axis=1)
-    sigma = np.where(enough, sd, mad)
-    threshold = np.minimum(mu + noise_sigmas * sigma, coarse_thr)
+    return mu, np.where(enough, sd, mad)
 
+
+def _fine_pick(
+    s: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    coarse_thr: np.ndarray,
+    searchable: np.ndarray,
+    coarse: np.ndarray,
+    blank_p: np.ndarray,
+    r: np.ndarray,
+    o: FirstReturnOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 5 and 7: ``(pick bin, unsupported)`` per ping: the earliest sustained rise above
+    ``mu + noise_sigmas * sigma`` (at most the coarse threshold) at or before the coarse
+    pick; unsupported where that rise is already above the threshold at the first searchable
+    bin (its edge may lie in the blanking zone). Pure."""
+    B = s.shape[1]
+    bins = np.arange(B)
+    threshold = np.minimum(mu + o.noise_sigmas * sigma, coarse_thr)
     above = (s > threshold[:, None]) & searchable & (bins[None, :] <= coarse[:, None])
-    first, fine_found = _first_sustained(above, min(sustain_bins, B))
+    first, fine_found = _first_sustained(above, min(o.sustain_bins, B))
     first = np.where(fine_found, np.minimum(first, coarse), coarse)
+    start = np.maximum(blank_p, int(np.searchsorted(r, o.min_range_m, side="left")))
+    return first, first <= start
 
-    # The first searchable bin already above the threshold: the edge may lie in the blanking.
-    start = np.maximum(blank_p, int(np.searchsorted(r, min_range_m, side="left")))
-    rejected = found & (first <= start)
-    found &= ~rejected
 
-    half = smooth_bins // 2
+def _leading_edge(
+    w: np.ndarray,
+    first: np.ndarray,
+    found: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    coarse_thr: np.ndarray,
+    searchable: np.ndarray,
+    r: np.ndarray,
+    o: FirstReturnOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 6: ``(altitude, found)``: the pick refined to the first single sample above its
+    own (sqrt(smooth_bins) higher) threshold within ``smooth_bins // 2`` bins, the altitude
+    the leading edge of that bin; NaN (not found) where it is not positive. Pure."""
+    P, B = w.shape
+    rows = np.arange(P)
+    half = o.smooth_bins // 2
     window = np.clip(first[:, None] + np.arange(-half, half + 1)[None, :], 0, B - 1)
     # A single sample is noisier than the range-smoothed signal: its own threshold.
-    raw_threshold = np.minimum(mu + noise_sigmas * sigma * np.sqrt(smooth_bins), coarse_thr)
+    raw_threshold = np.minimum(mu + o.noise_sigmas * sigma * np.sqrt(o.smooth_bins), coarse_thr)
     raw_above = (w[rows[:, None], window] > raw_threshold[:, None]) & np.take_along_axis(
         searchable, window, axis=1
     )
@@ -303,21 +436,30 @@ def detect_first_return(
     # Leading edge of the picked bin (bins are range cells centred on range_m).
     edges = np.concatenate([[max(r[0] - 0.5 * (r[1] - r[0]), 0.0)], 0.5 * (r[1:] + r[:-1])])
     altitude = np.where(found, edges[pick], np.nan)
-    found &= altitude > 0
-    altitude = np.where(found, altitude, np.nan)
+    found = found & (altitude > 0)
+    return np.where(found, altitude, np.nan), found
 
-    altitude = running_median(altitude, found, median_pings)
+
+def _along_track(
+    altitude: np.ndarray, found: np.ndarray, bad: np.ndarray, o: FirstReturnOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 8: ``(altitude, interpolated)``: a running median over ``median_pings`` picked
+    pings, and gaps of at most ``max_fill_pings`` pings between picks (not bad pings) filled
+    linearly (WARNING-worthy repairs: the caller counts ``interpolated``). Pure."""
+    P = altitude.size
+    rows = np.arange(P)
+    altitude = running_median(altitude, found, o.median_pings)
     interpolated = np.zeros(P, bool)
     idx = np.flatnonzero(found)
-    if max_fill_pings > 0 and idx.size >= 2:
+    if o.max_fill_pings > 0 and idx.size >= 2:
         gaps = np.diff(idx) - 1
         for a, b, g in zip(idx[:-1], idx[1:], gaps, strict=True):
-            if 0 < g <= max_fill_pings:
+            if 0 < g <= o.max_fill_pings:
                 interpolated[a + 1 : b] = True
         fill = interpolated & ~bad
         interpolated = fill
         altitude[fill] = np.interp(rows[fill], idx, altitude[idx])
-    return BottomPicks(altitude, found, interpolated, rejected, bad, blanking_used)
+    return altitude, interpolated
 
 
 def calibrate_to_altimeter(
