@@ -12,6 +12,8 @@ from omegaconf import OmegaConf, open_dict
 
 from sss2bathy.cli.train import instantiate_run
 from sss2bathy.config_validation import ConfigError, validate_config
+from sss2bathy.eval.results import REPORT_TABLES, SIREN_TABLES
+from sss2bathy.utils.experiments import pipeline_experiments
 from tests.conftest import skip_unless_survey_files
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -60,19 +62,16 @@ def _startup(cfg) -> None:
 
 
 def test_paper_experiments_exist():
-    expected = {
-        "cnn",
-        "siren_direct_fit",
-        "siren_gt_n2d",
-        "siren_cnn_n2d",
-        "siren_lambert",
-        "siren_lambert_all",
-        "d2_siren_cnn_n2d",
-        "d2_siren_lambert",
-        "d3_siren_cnn_n2d",
-        "d3_siren_lambert",
-    }
-    assert expected <= set(EXPERIMENTS)
+    """The one list of experiments (the pipeline stages, :mod:`sss2bathy.utils.experiments`)
+    names experiment files composed below, gives every report table a stage and every row
+    the paper reports (its Tables 3 and 4) an experiment with that table and label."""
+    stages = pipeline_experiments(CONF)
+    assert {e.name for e in stages} <= set(EXPERIMENTS)
+    assert {e.table for e in stages} == set(REPORT_TABLES)
+    rows = {(e.table, e.label) for e in stages}
+    for table, (_title, paper, _zoom) in SIREN_TABLES.items():
+        missing = sorted(set(paper) - {label for t, label in rows if t == table})
+        assert not missing, f"table {table}: the paper's rows {missing} have no experiment"
 
 
 @pytest.mark.parametrize("scale", SCALES)
