@@ -51,8 +51,8 @@ def read_tile_runs(folder: Path) -> tuple[dict[str, Any], dict[int, Path]]:
         record = json.loads(path.read_text())
         key = {k: record[k] for k in ("tiles", "survey", "origin")}
         if plan is None:
-            plan, first = key, path
-        elif key != plan:
+            plan, first = {**key, "size_m": record.get("size_m")}, path
+        elif key != {k: plan[k] for k in key}:
             raise ValueError(
                 f"{path}: expected the plan of {first} (tiles, survey, origin), found another "
                 "(tile runs of different tile.size_m / tile.overlap_m or surveys in one folder)"

@@ -157,7 +157,10 @@ def test_one_tile_blends_to_its_own_map(tmp_path):
     np.testing.assert_array_equal(got, want)  # NaN where the tile has none
     assert tags["SSS2BATHY_METHOD"] == "siren_lambert"
     assert tags["SSS2BATHY_VERTICAL_REFERENCE"] == want_tags["SSS2BATHY_VERTICAL_REFERENCE"]
-    assert "1 tiles" in tags["SSS2BATHY_TILES"] and (tmp_path / "map.png").is_file()
+    assert (
+        "1 tiles of at most 60 x 40 m" in tags["SSS2BATHY_TILES"]
+        and (tmp_path / "map.png").is_file()
+    )
 
 
 def _two_tiles(tmp_path: Path, offset: float, overlap: float = 20.0):
