@@ -5,6 +5,13 @@ truncated tail can be skipped) and parses each packet with pyxtf's own classes
 (``XTFFileHeader``, ``XTFPingHeader``, ``XTFAttitudeData``). Writing builds the same
 structures and serialises them with their ``to_bytes``; ``pyxtf.xtf_read`` reads the result.
 
+The import (:func:`read_xtf`, its settings one :class:`XTFReadOptions`) runs as named stages,
+each a function whose docstring says what it checks (refuses) and what it may repair (a
+WARNING): packets -> pings (:mod:`sss2bathy.io.xtf_packets`), sensor, channels and samples,
+navigation and attitude (:mod:`sss2bathy.io.xtf_nav`), waterfall and no-hit pings, altitude
+from the altimeter cross-checked against the first bottom return
+(:mod:`sss2bathy.io.xtf_altitude`), then the :class:`SidescanLine` and its stats.
+
 Memory: the parsed pings keep where their samples lie in the file, not the samples; those
 are read and resampled a few MB at a time into the float32 waterfall, and the parser hands
 back the pages of the file it has mapped as it goes. A line of any size imports in memory
@@ -158,6 +165,9 @@ def _resolve_sensor(
     overrides: Mapping[str, float | None],
     file_sound_speed: float | None,
 ) -> SensorParams:
+    """The line's :class:`SensorParams`: each of :data:`SENSOR_KEYS` from ``overrides``
+    where not None, else from the file. Checks: every value present in one of them and
+    plausible (:class:`SensorParams`'s own checks, naming the file). Repairs nothing."""
     values: dict[str, float] = {}
     merged = dict(file_sensor, sound_speed_mps=file_sound_speed)
     for key in SENSOR_KEYS:
@@ -183,7 +193,10 @@ def _resolve_sensor(
         raise SurveyFormatError(path, err.field, err.expected, err.found) from None
 
 
-def file_sound_speed(pings: list[XTFPingHeader]) -> tuple[np.ndarray, float | None]:
+def _file_sound_speed(pings: list[XTFPingHeader]) -> tuple[np.ndarray, float | None]:
+    """``(per-ping sound speed (NaN where implausible), their median or None)``. Repairs
+    (silently, a unit convention, not damage): Isis's half (one-way) speeds below 1000 m/s are
+    doubled; values outside 1300..1800 m/s are not used. Pure."""
     sv = np.array([p.SoundVelocity for p in pings], dtype=np.float64)
     sv = np.where((sv > 0) & (sv < 1000.0), 2.0 * sv, sv)  # Isis: one-way (half) speed
     ok = np.isfinite(sv) & (sv >= 1300.0) & (sv <= 1800.0)
@@ -326,6 +339,9 @@ def read_xtf(
     WARNING; so are a sonar setting the data contradict (:func:`~sss2bathy.io.xtf_checks.
     beam_vs_data`) and resampling to ``n_bins``.
 
+    The keywords are the fields of :class:`XTFReadOptions` (defaults and bounds declared
+    there); :func:`read_xtf_with` takes them as one and runs the import's stages.
+
     Returns:
         ``(line, stats)``: ``stats`` holds the origin, CRS, counts of everything interpolated,
         detected or skipped, and the recorded sample geometry.
@@ -371,7 +387,7 @@ def read_xtf_with(path: str | Path, o: XTFReadOptions) -> tuple[SidescanLine, di
     nav_units_code = _nav_units_code(path, parsed.header, o.nav_units)
 
     # 2. sensor: the config's values over the file's
-    sv_ping, sv_file = file_sound_speed(parsed.pings)
+    sv_ping, sv_file = _file_sound_speed(parsed.pings)
     file_sensor = read_xtf_sensor(path, o.channel_pair)
     sensor_params = _resolve_sensor(path, file_sensor, dict(o.sensor or {}), sv_file)
 
