@@ -143,22 +143,27 @@ def blend_layer(
     )
 
 
-def _write(values: np.ndarray, transform: Any, crs: Any, path: Path, tags: dict[str, str], **kw):
-    """A north-up float32 layer as a COG with ``tags`` (:func:`sss2bathy.io.export`)."""
-    import rasterio
+def _write(
+    values: np.ndarray, transform: Any, origin: dict[str, Any], path: Path, tags: dict, **kw
+) -> Path:
+    """A north-up layer on ``transform`` written by :func:`sss2bathy.io.export.write_geotiff`
+    (a COG in the survey's CRS, no-data where NaN) with ``tags``."""
+    from sss2bathy.io.export import write_geotiff
 
-    from sss2bathy.io.export import add_geotiff_tags
-    from sss2bathy.utils.atomic import atomic_path
+    grid = _local_grid(values, transform, origin)
+    mask = np.isfinite(grid.heights)
+    return write_geotiff(grid, path, origin=origin, mask=mask, tags=tags, **kw)
 
-    nodata = -9999.0
-    data = np.where(np.isfinite(values), values, nodata).astype(np.float32)
-    with atomic_path(path) as tmp:
-        with rasterio.open(
-            tmp, "w", driver="GTiff", height=data.shape[0], width=data.shape[1], count=1,
-            dtype="float32", crs=crs, transform=transform, nodata=nodata,
-        ) as dst:  # fmt: skip
-            dst.write(data, 1)
-    return add_geotiff_tags(path, tags, **kw)
+
+def _local_grid(values: np.ndarray, transform: Any, origin: dict[str, Any]):
+    """The north-up ``values`` on ``transform`` as a :class:`BathyGrid` in the survey's
+    local frame (rows from the south)."""
+    from sss2bathy.survey import BathyGrid
+
+    cell = transform.a
+    x0 = transform.c + cell / 2 - float(origin.get("easting") or 0.0)
+    y0 = transform.f - cell * (values.shape[0] - 0.5) - float(origin.get("northing") or 0.0)
+    return BathyGrid(values[::-1].astype(np.float32), x0, y0, cell)
 
 
 def blend_tile_runs(folder: Path, out: Path | None = None) -> dict[str, Path]:
@@ -169,7 +174,6 @@ def blend_tile_runs(folder: Path, out: Path | None = None) -> dict[str, Path]:
 
     from sss2bathy.eval.maps import render_map
     from sss2bathy.io.export import TAG_PREFIX
-    from sss2bathy.survey import BathyGrid
 
     folder = Path(folder)
     out = folder if out is None else Path(out)
@@ -180,9 +184,7 @@ def blend_tile_runs(folder: Path, out: Path | None = None) -> dict[str, Path]:
     for run in order:
         if not (run / "map.tif").is_file():
             raise ValueError(f"{run}: expected the tile's map.tif, found none (did its job fail?)")
-    z, transform, crs, tags = blend_layer(
-        tiles, [r / "map.tif" for r in order], origin, str(folder)
-    )
+    z, transform, _, tags = blend_layer(tiles, [r / "map.tif" for r in order], origin, str(folder))
     methods = {t.get(f"{TAG_PREFIX}METHOD") for t in tags}
     if len(methods) > 1:
         raise ValueError(
@@ -198,11 +200,9 @@ def blend_tile_runs(folder: Path, out: Path | None = None) -> dict[str, Path]:
         f"cos^2/sin^2 across each shared band: {', '.join(str(r) for r in order)}"
     )
     out.mkdir(parents=True, exist_ok=True)
-    paths = {"map_tif": _write(z, transform, crs, out / "map.tif", keep)}
+    paths = {"map_tif": _write(z, transform, origin, out / "map.tif", keep)}
     cell = transform.a
-    x0 = transform.c + cell / 2 - float(origin.get("easting") or 0.0)
-    y0 = transform.f - cell * (z.shape[0] - 0.5) - float(origin.get("northing") or 0.0)
-    grid = BathyGrid(z[::-1].astype(np.float32), x0, y0, cell)
+    grid = _local_grid(z, transform, origin)
     method = keep.get(f"{TAG_PREFIX}METHOD", "SIREN")
     paths["map_png"] = render_map(
         grid, out / "map.png", f"{method}, {len(tiles)} tiles blended: bathymetry", origin=origin
@@ -215,16 +215,18 @@ def blend_tile_runs(folder: Path, out: Path | None = None) -> dict[str, Path]:
     }
     sigma_paths = [r / "uncertainty.tif" for r in order]
     if all(p.is_file() for p in sigma_paths):
-        s, s_transform, s_crs, s_tags = blend_layer(tiles, sigma_paths, origin, str(folder))
+        from sss2bathy.eval.uncertainty import UNCERTAINTY_DESCRIPTION
+
+        s, s_transform, _, s_tags = blend_layer(tiles, sigma_paths, origin, str(folder))
         s_keep = {k: v for k, v in s_tags[0].items() if k.startswith(TAG_PREFIX)}
         s_keep[f"{TAG_PREFIX}COMMAND"] = shlex.join(sys.argv)
         s_keep[f"{TAG_PREFIX}TILES"] = keep[f"{TAG_PREFIX}TILES"]
         paths["uncertainty_tif"] = _write(
-            s, s_transform, s_crs, out / "uncertainty.tif", s_keep,
-            description="height uncertainty, 1 sigma (m)",
+            s, s_transform, origin, out / "uncertainty.tif", s_keep,
+            description=UNCERTAINTY_DESCRIPTION,
         )  # fmt: skip
         paths["uncertainty_png"] = render_map(
-            BathyGrid(s[::-1].astype(np.float32), x0, y0, cell),
+            _local_grid(s, s_transform, origin),
             out / "uncertainty.png",
             f"{method}, {len(tiles)} tiles blended: 1-sigma uncertainty",
             cmap="magma",
