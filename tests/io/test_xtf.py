@@ -11,7 +11,13 @@ import pyxtf
 from scipy.integrate import quad
 
 from sss2bathy.geometry import rotation_to_attitude
-from sss2bathy.io.xtf import read_xtf, read_xtf_sensor, utm_crs_for, write_xtf
+from sss2bathy.io.xtf import (
+    XTFReadOptions,
+    read_xtf,
+    read_xtf_sensor,
+    utm_crs_for,
+    write_xtf,
+)
 from sss2bathy.survey import SurveyFormatError
 
 # WGS 84 ellipsoid (published defining constants) and the UTM scale factor.
@@ -440,6 +446,32 @@ def test_bad_arguments(tmp_path, line, origin):
         read_xtf(path, missing_attitude="guess")
     with pytest.raises(SurveyFormatError, match="missing file"):
         read_xtf(tmp_path / "nope.xtf")
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "expected"),
+    [
+        ("n_bins", 1.5, "None or an integer >= 2"),
+        ("channel_pair", -1, "an integer >= 0"),
+        ("port_far_first", "yes", "true or false"),
+        ("max_jump_m", 0.0, "a number > 0"),
+        ("max_speed_mps", float("inf"), "a finite number"),
+        ("max_nav_gap_s", float("nan"), "a finite number"),
+        ("min_first_return_m", -1.0, "a number >= 0"),
+        ("blanking_m", -0.5, "a number >= 0"),
+        ("altitude_tolerance_m", 0.0, "a number > 0"),
+        ("altitude_offset", "shift", "one of ['record', 'apply']"),
+        ("nav_units", "feet", "one of ['file', 'latlon', 'metres']"),
+    ],
+)
+def test_read_options_refuse_a_bad_setting_naming_it(key, value, expected):
+    """Every setting of read_xtf is checked once, in XTFReadOptions, before any file is
+    opened: one line naming it, what it expects and what it found."""
+    with pytest.raises(ValueError, match=rf"^{key}: expected ") as err:
+        XTFReadOptions(**{key: value})
+    assert expected in str(err.value)
+    # the default passes its own check
+    assert XTFReadOptions(**{key: getattr(XTFReadOptions, key)}) == XTFReadOptions()
 
 
 def test_writer_refuses_what_xtf_cannot_hold(tmp_path, line, origin):
