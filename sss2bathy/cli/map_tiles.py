@@ -222,16 +222,9 @@ def is_tile_job(cfg: Mapping[str, Any]) -> bool:
     return settings is not None and settings["index"] is not None
 
 
-def write_tile_record(cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any], run_dir: Path) -> Path:
-    """A tile job's ``tile.json`` (the plan, its index, the survey origin) and its
-    ``map.tif``'s tags: the vertical reference of the XTF import (the tile's survey is a
-    folder cut from it) and ``SSS2BATHY_TILE``."""
-    from sss2bathy.io.export import TAG_PREFIX, VERTICAL_REFERENCE, add_geotiff_tags
-
-    tiles, survey, settings = plan_tiles(cfg, survey_cfg)  # type: ignore[misc]
-    index = settings["index"]
-    record = {
-        "index": index,
+def _plan_record(tiles: Sequence[Tile], survey: Any, settings: Mapping[str, Any]) -> dict:
+    """The plan as ``tiles.json`` / ``tile.json`` hold it."""
+    return {
         "n_tiles": len(tiles),
         "tiles": [tile_to_dict(t) for t in tiles],
         "survey": survey.name,
@@ -240,6 +233,17 @@ def write_tile_record(cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any], run
         "overlap_m": settings["overlap_m"],
         "margin_m": _margin(settings, survey),
     }
+
+
+def write_tile_record(cfg: Mapping[str, Any], survey_cfg: Mapping[str, Any], run_dir: Path) -> Path:
+    """A tile job's ``tile.json`` (the plan, its index, the survey origin) and its
+    ``map.tif``'s tags: the vertical reference of the XTF import (the tile's survey is a
+    folder cut from it) and ``SSS2BATHY_TILE``."""
+    from sss2bathy.io.export import TAG_PREFIX, VERTICAL_REFERENCE, add_geotiff_tags
+
+    tiles, survey, settings = plan_tiles(cfg, survey_cfg)  # type: ignore[misc]
+    index = settings["index"]
+    record = {"index": index, **_plan_record(tiles, survey, settings)}
     path = Path(run_dir) / TILE_JSON
     atomic_write_text(path, json.dumps(record, indent=1))
     tif = Path(run_dir) / "map.tif"
@@ -276,15 +280,7 @@ def run_tile_plan(
 
     tiles, survey, settings = plan_tiles(cfg, survey_cfg)  # type: ignore[misc]
     margin = _margin(settings, survey)
-    record = {
-        "n_tiles": len(tiles),
-        "tiles": [tile_to_dict(t) for t in tiles],
-        "survey": survey.name,
-        "origin": dict(survey.origin),
-        "size_m": settings["size_m"],
-        "overlap_m": settings["overlap_m"],
-        "margin_m": margin,
-    }
+    record = _plan_record(tiles, survey, settings)
     atomic_write_text(Path(run_dir) / PLAN_JSON, json.dumps(record, indent=1))
     from sss2bathy.survey.tiles import nadir_in
 

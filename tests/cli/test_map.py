@@ -181,25 +181,6 @@ def test_map_settings_choice_is_checked():
 
 
 # ------------------------------------------------------------------ end to end
-@pytest.fixture(scope="module")
-def tiny_xtf(tmp_path_factory) -> tuple[Path, str]:
-    """The simulator's tiny test lines (57 and 43 pings) written as XTF files."""
-    from sss2bathy.io.xtf import write_xtf
-    from sss2bathy.sim import config as sim_config
-    from sss2bathy.sim import generate
-    from sss2bathy.utils.config import survey_preset
-
-    cfg = OmegaConf.create(survey_preset("synthetic_d1", "tiny", CONF))
-    cfg.name = "sim_tiny"
-    survey, _ = generate.generate_survey(
-        sim_config.SyntheticSurveyConfig.from_mapping(OmegaConf.to_container(cfg))
-    )
-    folder = tmp_path_factory.mktemp("xtf") / "lines"
-    for line in survey.split_lines("test"):
-        write_xtf(line, folder / f"{line.name}.xtf", survey.origin)
-    return folder, survey.origin["crs"]
-
-
 def _run(module: str, args: list[str], tmp: Path) -> subprocess.CompletedProcess:
     env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
     return subprocess.run(
