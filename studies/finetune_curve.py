@@ -43,7 +43,7 @@ from sss2bathy.data.cnn_model_file import sha256
 from sss2bathy.data.cnn_normals import check_cnn_model
 from sss2bathy.pretrained import model_overrides
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
-from studies.tables import markdown_table, to_csv, write_tables
+from studies.tables import csv_value, markdown_table, read_json_object, to_csv, write_tables
 
 RUN_RECORD = "finetune_run.json"
 STEM = "finetune_curve"
@@ -155,23 +155,13 @@ def run_finetune_curve(
 
 
 # ------------------------------------------------------------------------- reading
-def _read_json(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ValueError(f"{path}: expected a file, found none (did the run finish?)")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: expected JSON, found unreadable text ({err})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, found {type(data).__name__}")
-    return data
 
 
 def read_run(run_dir: str | Path) -> dict[str, Any]:
     """One row of a finished run: its start, line count, test set, MAE and the constant's."""
     run_dir = Path(run_dir)
-    record = _read_json(run_dir / RUN_RECORD)
-    metrics = _read_json(run_dir / "metrics.json")
+    record = read_json_object(run_dir / RUN_RECORD)
+    metrics = read_json_object(run_dir / "metrics.json")
     if record.get("start") not in STARTS or not isinstance(record.get("n_lines"), int):
         raise ValueError(
             f"{run_dir / RUN_RECORD}: expected 'start' in {STARTS} and an integer 'n_lines', "
@@ -228,14 +218,10 @@ def read_runs(run_dirs: Sequence[str | Path]) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------- writing
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else ""
-    return str(value)
 
 
 def finetune_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    return to_csv(({c: _fmt(r[c]) for c in COLUMNS} for r in rows), COLUMNS)
+    return to_csv(({c: csv_value(r[c]) for c in COLUMNS} for r in rows), COLUMNS)
 
 
 def finetune_markdown(rows: Sequence[Mapping[str, Any]]) -> str:

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from sss2bathy.utils.atomic import atomic_write_text, save_figure
-from studies.tables import markdown_table, to_csv, write_tables
+from studies.tables import csv_value, markdown_table, read_json_object, to_csv, write_tables
 
 RUN_RECORD = "learning_curve_run.json"
 STEM = "learning_curve"  # learning_curve.{md,csv,png}
@@ -119,16 +119,6 @@ def run_learning_curve(
 
 
 # ------------------------------------------------------------------------- reading
-def _read_json(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ValueError(f"{path}: expected a file, found none (did the run finish?)")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: expected JSON, found unreadable text ({exc})") from exc
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, found {type(data).__name__}")
-    return data
 
 
 def _last_curve_row(path: Path) -> dict[str, float]:
@@ -148,8 +138,8 @@ def _count(metrics: Mapping[str, Any], key: str) -> int | str:
 def read_run(run_dir: str | Path) -> list[dict[str, Any]]:
     """One row per test set of a finished learning-curve run (``COLUMNS``)."""
     run_dir = Path(run_dir)
-    record = _read_json(run_dir / RUN_RECORD)
-    metrics = _read_json(run_dir / "metrics.json")
+    record = read_json_object(run_dir / RUN_RECORD)
+    metrics = read_json_object(run_dir / "metrics.json")
     curve = _last_curve_row(run_dir / "metric_curve.csv")
     if not isinstance(record.get("n_train"), int):
         raise ValueError(
@@ -220,14 +210,10 @@ def read_runs(run_dirs: Sequence[str | Path]) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------- writing
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else ""
-    return str(value)
 
 
 def learning_curve_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    return to_csv(({c: _fmt(r[c]) for c in COLUMNS} for r in rows), COLUMNS)
+    return to_csv(({c: csv_value(r[c]) for c in COLUMNS} for r in rows), COLUMNS)
 
 
 def learning_curve_markdown(rows: Sequence[Mapping[str, Any]]) -> str:

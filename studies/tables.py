@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -65,3 +67,24 @@ def write_tables(out_dir: str | Path, stem: str, markdown: str, table: str) -> d
     atomic_write_text(paths["md"], markdown)
     atomic_write_text(paths["csv"], table)
     return paths
+
+
+def csv_value(value: Any) -> str:
+    """A CSV cell: floats in full (``repr``), non-finite ones empty, anything else as text."""
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else ""
+    return str(value)
+
+
+def read_json_object(path: Path) -> dict[str, Any]:
+    """A run's JSON record as a dict; a missing, unreadable or non-object file is one
+    ``ValueError`` naming the path."""
+    if not path.is_file():
+        raise ValueError(f"{path}: expected a file, found none (did the run finish?)")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: expected JSON, found unreadable text ({err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, found {type(data).__name__}")
+    return data
