@@ -19,16 +19,15 @@ from sss2bathy.utils.atomic import save_figure
 PANELS = ("mosaic.tif", "map.tif", "uncertainty.tif")
 
 
-def read_band(path: Path) -> tuple[np.ndarray, tuple[float, float, float, float], float, str]:
+def read_band(path: Path) -> tuple[np.ndarray, tuple[float, float, float, float], float]:
     """The first band of a GeoTIFF as float64 with nodata as NaN, row 0 north; its extent
-    (left, right, bottom, top), cell size and the band's unit tag (or "")."""
+    (left, right, bottom, top) and cell size."""
     import rasterio
 
     with rasterio.open(path) as src:
         band = src.read(1, masked=True).astype(np.float64).filled(np.nan)
         b = src.bounds
-        unit = (src.units or ("",))[0] or ""
-        return band, (b.left, b.right, b.bottom, b.top), float(src.res[0]), unit
+        return band, (b.left, b.right, b.bottom, b.top), float(src.res[0])
 
 
 def render(run_dir: Path, out: Path, title: str | None = None) -> Path:
@@ -41,9 +40,9 @@ def render(run_dir: Path, out: Path, title: str | None = None) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mosaic, ext_m, _, _ = read_band(run_dir / "mosaic.tif")
-    heights, ext_h, cell, _ = read_band(run_dir / "map.tif")
-    sigma, ext_s, _, _ = read_band(run_dir / "uncertainty.tif")
+    mosaic, ext_m, _ = read_band(run_dir / "mosaic.tif")
+    heights, ext_h, cell = read_band(run_dir / "map.tif")
+    sigma, ext_s, _ = read_band(run_dir / "uncertainty.tif")
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), constrained_layout=True)
     lo, hi = np.nanpercentile(mosaic, [2, 98])
     im = axes[0].imshow(mosaic, extent=ext_m, cmap="copper", vmin=lo, vmax=hi)

@@ -57,8 +57,7 @@ def survey_placement(
     survey: Survey, split: str, maps: dict[str, BathyGrid]
 ) -> tuple[list[str], list[list[Any]]]:
     """Per line of ``split`` of a survey with its MBES truth (``survey.grid``): the flat-seabed
-    placement error and, for every map, the error draped on it (median / p95, m), plus a row
-    of the medians over all the split's bins pooled as the lines' medians' median."""
+    placement error and, for every map, the error draped on it (median / p95, m)."""
     if survey.grid is None:
         raise ValueError(f"{survey.name}: expected a survey with its MBES grid, found none")
     header = ["line", "flat median (m)", "flat p95 (m)"]
@@ -66,11 +65,10 @@ def survey_placement(
         header += [f"{label} median (m)", f"{label} p95 (m)"]
     rows = []
     for line in survey.split_lines(split):
-        errors = {label: placement_errors(line, survey.grid, grid) for label, grid in maps.items()}
-        first = next(iter(errors.values()))["flat"]
-        row: list[Any] = [line.name, f"{first['median']:.3f}", f"{first['p95']:.2f}"]
-        for e in errors.values():
-            row += [f"{e['grid']['median']:.3f}", f"{e['grid']['p95']:.2f}"]
+        errors = placement_errors(line, survey.grid, maps)
+        row: list[Any] = [line.name]
+        for label in ["flat", *maps]:
+            row += [f"{errors[label]['median']:.3f}", f"{errors[label]['p95']:.2f}"]
         rows.append(row)
     return header, rows
 

@@ -654,15 +654,19 @@ def write_run_mosaic(
 def placement_errors(
     line: SidescanLine,
     truth: BathyGrid | Any,
-    surface: BathyGrid | Any = None,
+    surface: BathyGrid | Mapping[str, BathyGrid] | Any = None,
     drape_cfg: DrapeConfig | Mapping[str, Any] | None = None,
 ) -> dict[str, dict[str, float]]:
     """Horizontal placement error (m) of each bin against its draping on the true grid.
 
-    The draping of ``line`` on ``truth`` is the truth (bins it finds valid). Returns, for
-    ``flat`` (:func:`flat_seabed_points`) and, with ``surface``, for ``grid`` (draped on
-    ``surface``, e.g. a reconstructed map), ``{"median", "p95", "max", "n"}`` over the bins
-    valid in both."""
+    The draping of ``line`` on ``truth`` is the truth (bins it finds valid), draped once.
+    Returns, for ``flat`` (:func:`flat_seabed_points`) and, with ``surface``, for ``grid``
+    (draped on ``surface``, e.g. a reconstructed map) — or, when ``surface`` maps labels to
+    grids, for each label — ``{"median", "p95", "max", "n"}`` over the bins valid in both."""
+    surfaces = surface if isinstance(surface, Mapping) else {"grid": surface}
+    surfaces = {k: v for k, v in surfaces.items() if v is not None}
+    if "flat" in surfaces:
+        raise ValueError("surface: expected labels other than 'flat' (the flat seabed's)")
     true = drape_line(line, truth, drape_cfg)
     ok_true = true.valid & np.isfinite(true.points[..., 0])
     out: dict[str, dict[str, float]] = {}
@@ -681,7 +685,7 @@ def placement_errors(
 
     flat = flat_seabed_points(line)
     out["flat"] = stats(flat, np.isfinite(flat[..., 0]))
-    if surface is not None:
-        other = drape_line(line, surface, drape_cfg)
-        out["grid"] = stats(other.points.astype(np.float64), other.valid)
+    for label, grid in surfaces.items():
+        other = drape_line(line, grid, drape_cfg)
+        out[label] = stats(other.points.astype(np.float64), other.valid)
     return out

@@ -181,7 +181,9 @@ def test_map_settings_choice_is_checked():
 
 
 # ------------------------------------------------------------------ end to end
-def _run(module: str, args: list[str], tmp: Path) -> subprocess.CompletedProcess:
+def _run(
+    module: str, args: list[str], tmp: Path, timeout: float = 600
+) -> subprocess.CompletedProcess:
     env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
     return subprocess.run(
         [sys.executable, "-m", module, *args],
@@ -189,7 +191,7 @@ def _run(module: str, args: list[str], tmp: Path) -> subprocess.CompletedProcess
         env=env,
         capture_output=True,
         text=True,
-        timeout=600,
+        timeout=timeout,
     )
 
 

@@ -5,9 +5,6 @@ multirun and blended against the untiled map, on the simulator's tiny lines writ
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +17,7 @@ from sss2bathy.cli.map_blend import blend_tile_runs, read_tile_runs
 from sss2bathy.cli.map_tiles import TILE_JSON, plan_tiles, tile_settings, tile_survey_config
 from sss2bathy.survey import BathyGrid
 from sss2bathy.survey.tiles import footprint_bounds, tile_layout, tile_to_dict
+from tests.cli.test_map import _run as run_module
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
@@ -198,15 +196,7 @@ def test_blend_errors_name_the_missing_tiles_and_a_mixed_plan(tmp_path, capsys):
 
 # ------------------------------------------------------------------ slow: end to end
 def _run(args: list[str], tmp: Path, module: str = "sss2bathy.cli.map"):
-    env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
-    return subprocess.run(
-        [sys.executable, "-m", module, *args],
-        cwd=tmp,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    return run_module(module, args, tmp, timeout=900)
 
 
 @pytest.mark.slow

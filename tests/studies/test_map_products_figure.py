@@ -26,7 +26,7 @@ def test_three_panels_from_a_run_and_a_missing_layer(tmp_path, capsys):
     _tif(tmp_path / "map.tif", heights)
     _tif(tmp_path / "mosaic.tif", np.random.default_rng(0).uniform(0.2, 1.8, (40, 60)))
     _tif(tmp_path / "uncertainty.tif", 0.1 + 0.01 * x)
-    band, extent, cell, _ = read_band(tmp_path / "map.tif")
+    band, extent, cell = read_band(tmp_path / "map.tif")
     assert np.isnan(band[:, :5]).all() and np.isfinite(band[:, 5:]).all()
     assert extent == (512600.0, 512630.0, 5365880.0, 5365900.0) and cell == 0.5
     out = tmp_path / "fig.png"

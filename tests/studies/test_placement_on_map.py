@@ -19,7 +19,7 @@ def _survey(truth: BathyGrid) -> Survey:
 def test_a_map_equal_to_the_truth_places_every_bin_where_the_truth_does():
     truth = plane(a=0.05, c=SEABED_Z)
     flat = BathyGrid(np.full_like(truth.heights, SEABED_Z), truth.x0, truth.y0, truth.cell_size)
-    header, rows = survey_placement(_survey(truth), "test", {"truth": truth, "flat": flat})
+    header, rows = survey_placement(_survey(truth), "test", {"truth": truth, "level": flat})
     assert header[:3] == ["line", "flat median (m)", "flat p95 (m)"] and len(rows) == 2
     for row in rows:
         flat_median, truth_median, grid_flat_median = float(row[1]), float(row[3]), float(row[5])
