@@ -55,6 +55,7 @@ from sss2bathy.eval.results import (
     results_markdown,
     results_table,
     siren_table,
+    wall_time_line,
 )
 from sss2bathy.metrics.bathy import bathy_metrics, map_gradient, signed_error
 from sss2bathy.survey import BathyGrid
@@ -434,7 +435,7 @@ def stage_times_section(stage: dict[str, Any] | None, runs: dict[str, RunRecord]
     for name, seconds in stage.get("seconds", {}).items():
         run = runs.get(name)
         lines.append(f"| {name} | {seconds} | {f'`{run.path.name}`' if run else ''} |")
-    return lines + [""]
+    return lines + [""] + wall_time_line(stage)
 
 
 def build_report(

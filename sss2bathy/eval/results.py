@@ -163,7 +163,21 @@ def results_markdown(results: Mapping[str, Any]) -> str:
     if stage.get("seconds"):
         lines += ["## Stage times", "", "| stage | seconds |", "|---|---:|"]
         lines += [f"| {k} | {v} |" for k, v in stage["seconds"].items()] + [""]
+        lines += wall_time_line(stage)
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def wall_time_line(stage: dict[str, Any]) -> list[str]:
+    """The pipeline's wall time up to the report, and how many stages ran at a time (the
+    stages' ``total`` is their sum); none when the last run did not finish."""
+    wall, jobs = stage.get("wall_seconds"), stage.get("jobs")
+    if wall is None:
+        return []
+    return [
+        f"Wall time up to the report: {float(wall) / 60:.1f} min, {jobs} stage(s) at a time "
+        "(`total` above is the sum of the stages).",
+        "",
+    ]
 
 
 def _f(value: Any, fmt: str) -> str:

@@ -12,7 +12,20 @@ from pathlib import Path
 
 import pytest
 
-from sss2bathy.cli.pipeline import Args, parse_args, plan_stages, record_time, select
+from sss2bathy.cli.pipeline import (
+    Args,
+    Stage,
+    default_jobs,
+    dependencies,
+    parse_args,
+    plan_stages,
+    record_time,
+    record_wall,
+    run_plan,
+    schedule,
+    select,
+    stage_threads,
+)
 from sss2bathy.utils.experiments import pipeline_experiments
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -135,3 +148,116 @@ def test_make_help_has_no_colour_codes_in_a_pipe_and_lists_every_experiment():
     assert "\033[" not in proc.stdout
     targets = {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}
     assert {"siren-heights-only", "siren-gt-n2d", "sweep-siren", "report", "demo"} <= targets
+
+
+def test_stages_wait_for_the_surveys_and_their_needs_and_the_report_for_all():
+    plan = plan_stages(pipeline_experiments(ROOT / "conf"))
+    deps = dependencies(plan)
+    prepares = {s.name for s in plan if s.name.startswith("prepare_")}
+    assert all(deps[p] == set() for p in prepares)
+    assert deps["cnn"] == prepares
+    assert deps["siren_cnn_n2d"] == prepares | {"cnn"}
+    assert deps["siren_gt_n2d"] == prepares  # does not wait for the CNN
+    assert deps["report"] == {s.name for s in plan} - {"report"}
+
+
+def test_two_jobs_overlap_the_cnn_with_the_fits_that_do_not_read_it():
+    plan = plan_stages(pipeline_experiments(ROOT / "conf"))
+    durations = {s.name: 10.0 for s in plan} | {"cnn": 100.0}
+    one = schedule(plan, 1, durations)
+    assert one == sum(durations.values())
+    two = schedule(plan, 2, durations)
+    # the prepares in two lanes (20), the CNN beside the 6 fits that need no CNN (100), the
+    # 3 CNN-N2d fits in two lanes (20), the report (10)
+    assert two == 20 + 100 + 20 + 10
+    bad = [Stage("a", "sss2bathy.cli.train", ("experiment=a",)), Stage("report", "x", ())]
+    deps_on_missing = {"a": 1.0, "report": 1.0}
+    assert schedule(bad, 2, deps_on_missing) == 2.0
+
+
+def test_jobs_follow_the_cores_and_the_stage_threads(tmp_path):
+    assert default_jobs(1, 2) == 2 and default_jobs(2, 2) == 1 and default_jobs(None, 16) == 1
+    assert default_jobs(4, 2) == 1
+    assert stage_threads(parse_args(["scale=demo"]), ROOT / "conf") == 1
+    assert stage_threads(parse_args(["scale=paper"]), ROOT / "conf") is None
+    assert stage_threads(parse_args(["scale=demo", "torch_threads=3"]), ROOT / "conf") == 3
+    assert stage_threads(parse_args(["scale=demo", "torch_threads=null"]), ROOT / "conf") is None
+    with pytest.raises(ValueError, match="torch_threads: expected an integer >= 1 or null"):
+        stage_threads(parse_args(["torch_threads=two"]), ROOT / "conf")
+    assert parse_args(["jobs=3"]).jobs == 3
+    with pytest.raises(ValueError, match="jobs: expected an integer >= 1, found '0'"):
+        parse_args(["jobs=0"])
+
+
+def _script_plan(tmp_path: Path) -> tuple[list[Stage], callable]:
+    """Four stages of small Python scripts: two prepares, a fit that needs one, a report."""
+    plan = [
+        Stage("prepare_a", "sss2bathy.cli.prepare", ()),
+        Stage("prepare_b", "sss2bathy.cli.prepare", ()),
+        Stage("fit", "sss2bathy.cli.train", (), ("other",)),
+        Stage("report", "sss2bathy.cli.report", ()),
+    ]
+    marks = tmp_path / "marks"
+    marks.mkdir()
+
+    def command(stage: Stage) -> list[str]:
+        code = (
+            "import sys, time, pathlib;"
+            f"m = pathlib.Path({str(marks)!r});"
+            f"(m / '{stage.name}.start').write_text(str(time.time()));"
+            f"print('hello from {stage.name}');"
+            "time.sleep(0.5);"
+            f"(m / '{stage.name}.end').write_text(str(time.time()));"
+            f"sys.exit(3 if (m / 'fail_{stage.name}').exists() else 0)"
+        )
+        return [sys.executable, "-c", code]
+
+    return plan, command
+
+
+def test_run_plan_runs_independent_stages_side_by_side_and_keeps_each_log(tmp_path, capfd):
+    plan, command = _script_plan(tmp_path)
+    marks = tmp_path / "marks"
+    finished: list[str] = []
+    code = run_plan(
+        plan, 2, command, tmp_path, tmp_path / "logs", lambda s, t: finished.append(s.name)
+    )
+    assert code == 0
+    assert finished[-1] == "report" and sorted(finished) == sorted(s.name for s in plan)
+
+    def t(name: str, what: str) -> float:
+        return float((marks / f"{name}.{what}").read_text())
+
+    assert t("prepare_b", "start") < t("prepare_a", "end")  # side by side
+    assert t("fit", "start") >= max(t("prepare_a", "end"), t("prepare_b", "end"))
+    assert t("report", "start") >= t("fit", "end")
+    out = capfd.readouterr().out
+    assert "[fit] hello from fit" in out and "=== [3/4] fit: done in" in out
+    assert (tmp_path / "logs" / "fit.log").read_text() == "hello from fit\n"
+
+
+def test_run_plan_starts_nothing_after_a_failure_and_returns_its_status(tmp_path, capfd):
+    plan, command = _script_plan(tmp_path)
+    (tmp_path / "marks" / "fail_prepare_a").write_text("")
+    finished: list[str] = []
+    code = run_plan(
+        plan, 2, command, tmp_path, tmp_path / "logs", lambda s, t: finished.append(s.name)
+    )
+    assert code == 3
+    assert finished == ["prepare_b"]  # prepare_b was already running; nothing started after
+    assert not (tmp_path / "marks" / "fit.start").exists()
+    captured = capfd.readouterr()
+    assert "stage 'prepare_a' failed (exit 3); stopping." in captured.err
+
+
+def test_the_wall_time_sits_beside_the_stage_times_until_a_new_run_starts(tmp_path):
+    path = tmp_path / "stage_times.json"
+    record_time(path, "demo", "cnn", 100.0)
+    record_time(path, "demo", "siren_gt_n2d", 20.0)
+    record_wall(path, 100.5, 2)
+    record_time(path, "demo", "report", 5.0)  # the report stage keeps them
+    data = json.loads(path.read_text())
+    assert data["wall_seconds"] == 100.5 and data["jobs"] == 2
+    assert data["seconds"]["total"] == 125.0
+    record_wall(path, None, None)
+    assert "wall_seconds" not in json.loads(path.read_text())
