@@ -15,7 +15,7 @@ pass does not depend on them.
 
 The projection (``projected_min_12_lines``) is windows / windows-per-second for the paper's
 12 test lines (2000 pings, 512 bins per side, both heads) at each ``--overlaps`` value
-(``data.cnn_overlap``: the training 0.75, or 0.5 = half the windows). ``--e2e-pings N``
+(``data.normals.overlap``: the training 0.75, or 0.5 = half the windows). ``--e2e-pings N``
 also runs the whole pipeline (:func:`sss2bathy.data.cnn_normals.predict_waterfall`:
 gathering the windows, batches of ``--e2e-batch``, stitching) over an ``N``-ping line and
 reports its windows/s as a ratio to the bare forward pass of the same variant (the

@@ -1,6 +1,6 @@
 """What the fast CNN inference settings cost in accuracy (issue 20, Build 4): n_lat MAE of a
 trained checkpoint's predictions against the draped truth on a survey's test lines, for
-each inference precision (``data.cnn_precision``) and overlap (``data.cnn_overlap``), and
+each inference precision (``data.normals.precision``) and overlap (``data.normals.overlap``), and
 the mean absolute change from the fp32 / training-overlap predictions.
 
 Predictions are recomputed in a temporary cache (the survey's own prediction cache is not

@@ -252,20 +252,14 @@ def run_experiment(trainer: pl.Trainer) -> str | None:
 
 
 def cnn_checkpoint_of(datamodule: Any) -> Path | None:
-    """The CNN checkpoint a datamodule's normals come from (``normals="cnn"``; ``latest``
-    resolved as it resolves it), else None."""
-    if datamodule is None or getattr(datamodule, "normals", None) != "cnn":
-        return None
-    ckpt = getattr(datamodule, "cnn_checkpoint", None)
-    if not ckpt:
-        return None
-    if str(ckpt) == "latest":
-        from sss2bathy.data.cnn_normals import latest_checkpoint
+    """The CNN checkpoint a datamodule's normals come from (``data.normals`` with source
+    ``cnn``; ``latest`` and ``pretrained`` resolved as it resolves them), else None."""
+    from sss2bathy.data.normal_source import NormalSource
 
-        return Path(latest_checkpoint(datamodule.cnn_runs_dir, datamodule.cnn_scale))
-    from sss2bathy.data.cnn_normals import resolve_model_path  # "pretrained": the shipped CNN
-
-    return resolve_model_path(ckpt)
+    normals = getattr(datamodule, "normals", None)
+    if not isinstance(normals, NormalSource) or normals.source != "cnn":
+        return None
+    return Path(normals.resolve().checkpoint)
 
 
 def map_provenance(trainer: pl.Trainer) -> dict[str, str]:

@@ -57,7 +57,7 @@ MAP_METHODS = ("siren_lambert", "siren_heights_only", "siren_cnn_n2d")
 #: ``conf/map.yaml`` spells them
 KEY_ALIASES = {
     "data.survey.": "survey.",
-    "data.cnn_checkpoint": "cnn_checkpoint",
+    "data.normals.checkpoint": "cnn_checkpoint",
     "data.holdout.": "holdout.",
 }
 
@@ -245,9 +245,9 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
     train_cfg = compose("train", overrides=train_overrides(cfg, choices))
     with open_dict(train_cfg):
         train_cfg.data.survey = survey
-        if ckpt is not None:
-            train_cfg.data.cnn_checkpoint = ckpt
-        elif train_cfg.data.get("normals") == "cnn":
+        if train_cfg.data.normals.source == "cnn" and ckpt is not None:
+            train_cfg.data.normals.checkpoint = ckpt
+        elif train_cfg.data.normals.source == "cnn":
             raise ValueError(
                 f"cnn_checkpoint: expected a CNN checkpoint for method "
                 f"{map_experiment(cfg)!r} (CNN normals), found none (and this install ships "

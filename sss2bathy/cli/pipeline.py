@@ -171,7 +171,7 @@ def parse_args(argv: list[str]) -> Args:
 
 def has_finished_run(outputs: Path, name: str, scale: str) -> bool:
     """Whether ``outputs/runs/<name>/`` holds a run of ``scale`` with ``checkpoints/last.ckpt``
-    (what ``data.cnn_checkpoint=latest`` takes)."""
+    (what ``data.normals.checkpoint=latest`` takes)."""
     from sss2bathy.utils.checkpoints import find_checkpoints, run_scale
 
     return any(run_scale(p) == scale for p in find_checkpoints(outputs / "runs" / name))

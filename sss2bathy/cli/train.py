@@ -186,16 +186,16 @@ def module_kind(model: Any) -> str | None:
 
 def check_checkpoints(cfg: DictConfig, model: Any, ckpt_path: str | None) -> None:
     """Read the checkpoints a run will load before any data is made: ``ckpt_path`` must be
-    a checkpoint of the module being trained, ``data.cnn_checkpoint`` (a file) a CNN's.
+    a checkpoint of the module being trained, ``data.normals.checkpoint`` (a file) a CNN's.
     Each problem is one line naming the key, the file and what it holds; a resume logs
     where it starts ("resuming from <path> at epoch k (step s)")."""
     from sss2bathy.utils.checkpoints import expect_kind, read_checkpoint, resume_position
 
-    cnn = OmegaConf.select(cfg, "data.cnn_checkpoint")
-    if OmegaConf.select(cfg, "data.normals") == "cnn" and cnn not in (None, "", "latest"):
+    cnn = OmegaConf.select(cfg, "data.normals.checkpoint")
+    if OmegaConf.select(cfg, "data.normals.source") == "cnn" and cnn not in (None, "", "latest"):
         from sss2bathy.data.cnn_normals import check_cnn_model  # .ckpt, .safetensors, pretrained
 
-        check_cnn_model(cnn, "data.cnn_checkpoint")
+        check_cnn_model(cnn, "data.normals.checkpoint")
     if ckpt_path is None:
         return
     ckpt = read_checkpoint(ckpt_path, "ckpt_path")

@@ -111,16 +111,19 @@ _SONAR_WARNED: set[str] = set()
 
 
 # --------------------------------------------------------------------- checkpoints
-def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
+def latest_checkpoint(
+    runs_dir: str | Path, scale: str | None = None, key: str = "data.normals.checkpoint"
+) -> Path:
     """Newest ``**/checkpoints/last.ckpt`` under ``runs_dir`` (by modification time).
 
     With ``scale``, only runs whose Hydra config has that ``scale.name`` count, so a
-    tiny-scale test run never stands in for the demo's CNN.
+    tiny-scale test run never stands in for the demo's CNN. ``key`` names the setting in
+    errors.
     """
     found = find_checkpoints(runs_dir, RUNS_PATTERNS)
     if not found:
         raise ValueError(
-            f"cnn_checkpoint: expected a trained CNN ('latest' = newest "
+            f"{key}: expected a trained CNN ('latest' = newest "
             f"**/checkpoints/last.ckpt under {runs_dir}), found none; train it first "
             "(make cnn) or give a checkpoint path"
         )
@@ -128,7 +131,7 @@ def latest_checkpoint(runs_dir: str | Path, scale: str | None = None) -> Path:
         matching = [p for p in found if run_scale(p) == scale]
         if not matching:
             raise ValueError(
-                f"cnn_checkpoint: expected a CNN run of scale={scale} ('latest' under "
+                f"{key}: expected a CNN run of scale={scale} ('latest' under "
                 f"{runs_dir}), found {len(found)} run(s) of other scales "
                 f"({sorted({str(run_scale(p)) for p in found})}); train it at this scale "
                 "(make cnn SCALE=...) or give a checkpoint path"
@@ -173,7 +176,7 @@ def resolve_cnn_checkpoint(
     if str(ckpt_path) == "latest":
         if runs_dir is None:
             raise ValueError(f"{key}: 'latest' needs the folder of the CNN runs, found none")
-        return latest_checkpoint(runs_dir, scale)
+        return latest_checkpoint(runs_dir, scale, key)
     path = Path(ckpt_path)
     if not path.is_file():
         raise FileNotFoundError(f"{key}: expected a CNN checkpoint file or 'latest', found {path}")

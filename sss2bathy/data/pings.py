@@ -27,7 +27,9 @@ ping sample nearly the same seabed (512 bins over 50 m at the paper's scale), so
 gains nearly as much per step (docs/performance_log.md, "A map within 10 % of the best in
 20 min"; ``siren_schedule=budget`` uses a quarter).
 
-Normals and masks (``normals``):
+Normals and masks (``normals``: a :class:`~sss2bathy.data.normal_source.NormalSource`,
+``data.normals`` of ``conf/data/normals/``, with the CNN's checkpoint and inference settings
+inside):
 
 * ``"gt"`` — lines draped on the MBES grid (:func:`sss2bathy.draping.drape_survey`):
   the draped ``n_lat`` and mask (SIREN-GT-N2d).
@@ -65,14 +67,10 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from sss2bathy.data.cnn_normals import (
-    check_overlap,
-    check_precision,
-    latest_checkpoint,
-    predict_normals,
-)
+from sss2bathy.data.cnn_normals import predict_normals
 from sss2bathy.data.holdout import AltimeterSplit, split_altimeter, split_altimeter_fold
 from sss2bathy.data.masks import SonarMaskConfig, sonar_only_mask
+from sss2bathy.data.normal_source import NormalSource
 from sss2bathy.data.normalize import normalize_intensity
 from sss2bathy.data.sources import load_survey, survey_folder
 from sss2bathy.data.windows import EpochSampler, ResumableDataLoader
@@ -82,7 +80,6 @@ from sss2bathy.utils.checks import require_bool, require_int, require_number
 
 log = logging.getLogger(__name__)
 
-NORMAL_SOURCES = ("gt", "cnn", "none")
 
 
 @dataclass
@@ -140,36 +137,27 @@ def build_ping_table(
     survey: Survey,
     survey_dir: str | Path,
     line_names: Sequence[str],
-    normals: str = "gt",
-    cnn_checkpoint: str | Path | None = None,
-    window: Mapping[str, Any] | None = None,
+    normals: NormalSource | Mapping[str, Any] | str = "gt",
     need_intensity: bool = False,
     drape: Mapping[str, Any] | None = None,
     sonar_mask: Mapping[str, Any] | None = None,
-    cnn_precision: str = "fp32",
-    cnn_overlap: float | None = None,
 ) -> PingTable:
     """Concatenate the lines' navigation, targets and masks into one :class:`PingTable`.
 
     Args:
         survey, survey_dir: the survey and its folder (draping/prediction caches).
         line_names: lines to use, in order (their index is the batch's ``line``).
-        normals: ``"gt"`` | ``"cnn"`` | ``"none"`` (module docstring).
-        cnn_checkpoint: CNN checkpoint path (``normals="cnn"``).
-        window: the CNN's window settings; ``None``: those stored in the checkpoint.
+        normals: the normals' source (:class:`~sss2bathy.data.normal_source.NormalSource`,
+            its fields, or ``"gt"`` | ``"none"``); ``cnn`` with its checkpoint a file or
+            ``pretrained`` (:meth:`NormalSource.resolve` turns ``latest`` into a file).
         need_intensity: also hold normalised intensities (Lambertian sensor model).
         drape: :class:`~sss2bathy.draping.DrapeConfig` fields, or ``None`` for defaults
-            (``normals="gt"`` only).
+            (``gt`` only).
         sonar_mask: :class:`~sss2bathy.data.masks.SonarMaskConfig` fields (``None``:
-            defaults), the mask of ``normals="cnn"`` and ``"none"``.
-        cnn_precision: ``"fp32"`` | ``"bf16"``, the CNN's inference precision
-            (``normals="cnn"``).
-        cnn_overlap: the CNN's inference overlap in [0, 1); ``None``: ``window``'s (the
-            training overlap).
+            defaults), the mask of ``cnn`` and ``none``.
     """
     sonar_mask = SonarMaskConfig.coerce(sonar_mask)
-    if normals not in NORMAL_SOURCES:
-        raise ValueError(f"normals: expected one of {NORMAL_SOURCES}, found {normals!r}")
+    normals = NormalSource.coerce(normals)
     lines = [survey.line(n) for n in line_names]
     if not lines:
         raise ValueError(f"line_names: expected at least one line, found {list(line_names)}")
@@ -181,21 +169,21 @@ def build_ping_table(
                 f"({range_m.shape[0]} bins), found different ones ({ln.range_m.shape[0]} bins)"
             )
     draped = None
-    if normals == "gt":
+    if normals.source == "gt":
         draped = drape_survey(survey, survey_dir, cfg=drape, lines=list(line_names))
     predicted = None
-    if normals == "cnn":
-        if cnn_checkpoint is None:
-            raise ValueError("cnn_checkpoint: expected a checkpoint path for normals=cnn")
+    if normals.source == "cnn":
+        if normals.checkpoint == "latest":
+            normals = normals.resolve()
         predicted = predict_normals(
-            cnn_checkpoint,
+            normals.checkpoint,
             survey,
             survey_dir,
             list(line_names),
             None,
-            dict(window) if window is not None else None,
-            precision=cnn_precision,
-            overlap=cnn_overlap,
+            dict(normals.window) if normals.window is not None else None,
+            precision=normals.precision,
+            overlap=normals.overlap,
         )
     n_lat, masks, intensity = [], [], []
     for ln in lines:
@@ -203,9 +191,9 @@ def build_ping_table(
             mask = draped[ln.name].mask.copy()
         else:
             mask = sonar_only_mask(ln, sonar_mask)
-        if normals == "gt":
+        if normals.source == "gt":
             target = draped[ln.name].n_lat
-        elif normals == "cnn":
+        elif normals.source == "cnn":
             target, pred_mask = predicted[ln.name]
             mask |= pred_mask
         else:
@@ -330,26 +318,6 @@ class PingBatches(Dataset):
         return batch
 
 
-def check_window(window: Mapping[str, Any] | None) -> dict[str, Any] | None:
-    """The CNN's window settings of ``data.window`` as a plain dict (``None``: those stored
-    in the checkpoint), its values checked: ``window_pings`` a positive integer,
-    ``window_bins`` a positive integer or null (the lines' bins), ``overlap`` in [0, 1)."""
-    if window is None:
-        return None
-    if not isinstance(window, Mapping):
-        raise ValueError(f"window: expected a mapping or null, found {window!r}")
-    window = {str(k): v for k, v in window.items()}
-    if "window_pings" in window:
-        require_int("window.window_pings", window["window_pings"])
-    if window.get("window_bins") is not None:
-        require_int("window.window_bins", window["window_bins"])
-    if "overlap" in window:
-        require_number(
-            "window.overlap", window["overlap"], lambda v: 0 <= v < 1, "a fraction in [0, 1)"
-        )
-    return window
-
-
 # ----------------------------------------------------------- held-out altimeter points
 HOLDOUT_KEYS = ("fraction", "block_pings", "seed", "folds", "fold", "block_m")
 
@@ -409,17 +377,12 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         data_dir: where surveys live (``paths.data_dir``).
         sidescan_split: split whose lines give the pings (``"all"`` = every line).
         altimeter_split: split whose lines give the altimeter points.
-        normals: ``"gt"`` | ``"cnn"`` | ``"none"`` (module docstring).
-        cnn_checkpoint: path, or ``"latest"`` = newest ``**/checkpoints/last.ckpt`` under
-            ``cnn_runs_dir``; used with ``normals="cnn"``.
-        cnn_runs_dir: folder of the CNN experiment's runs (for ``"latest"``).
-        cnn_scale: with ``"latest"``, only CNN runs of this ``scale.name`` (None: any).
-        window: the CNN's window (``window_pings``, ``window_bins``, ``overlap``); ``None``:
-            the training windows stored in the checkpoint.
-        cnn_precision: ``"fp32"`` | ``"bf16"``: the CNN's inference precision
-            (``normals="cnn"``; bf16 = a bfloat16 copy of the network, cached apart).
-        cnn_overlap: the CNN's inference overlap, a fraction in [0, 1) (0.5: half the
-            windows of the training 0.75); ``None``: the training overlap.
+        normals: the normals' source, ``data.normals`` (module docstring;
+            :class:`~sss2bathy.data.normal_source.NormalSource`, its fields or ``"gt"`` |
+            ``"none"``): for ``cnn`` the checkpoint (a path, ``latest`` = the newest CNN run
+            of ``runs_dir`` at ``scale``, or ``pretrained``), the windows, the inference
+            precision and overlap. ``latest`` and ``pretrained`` are resolved once, in
+            :meth:`setup` (:attr:`normals` then names the file).
         need_intensity: hold normalised intensities (Lambertian sensor model).
         batch_pings: pings per batch (64 in the paper).
         altimeter_points: altimeter points per batch (2000 in the paper), drawn with
@@ -446,11 +409,7 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         data_dir: str,
         sidescan_split: str = "test",
         altimeter_split: str = "test",
-        normals: str = "gt",
-        cnn_checkpoint: str | None = None,
-        cnn_runs_dir: str | None = None,
-        cnn_scale: str | None = None,
-        window: Mapping[str, Any] | None = None,
+        normals: NormalSource | Mapping[str, Any] | str = "gt",
         need_intensity: bool = False,
         batch_pings: int = 64,
         altimeter_points: int = 2000,
@@ -462,27 +421,15 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         z_margin: float = 0.25,
         z_margin_m: float = 2.0,
         holdout: Mapping[str, Any] | None = None,
-        cnn_precision: str = "fp32",
-        cnn_overlap: float | None = None,
         bin_fraction: float = 1.0,
     ) -> None:
         super().__init__()
-        if normals not in NORMAL_SOURCES:
-            raise ValueError(f"normals: expected one of {NORMAL_SOURCES}, found {normals!r}")
-        if normals == "cnn" and not cnn_checkpoint:
-            raise ValueError(
-                "cnn_checkpoint: expected a path or 'latest' for normals=cnn, found none"
-            )
-        if cnn_checkpoint == "latest" and not cnn_runs_dir:
-            raise ValueError("cnn_runs_dir: expected the CNN runs folder for cnn_checkpoint=latest")
+        normals = NormalSource.coerce(normals)
         require_int("batch_pings", batch_pings)
         require_int("altimeter_points", altimeter_points)
         require_bool("need_intensity", need_intensity)
         require_number("z_margin", z_margin, lambda v: v >= 0, "a fraction >= 0")
         require_number("z_margin_m", z_margin_m, lambda v: v >= 0, "a number >= 0 (m)")
-        window = check_window(window)
-        check_precision(cnn_precision, "cnn_precision")
-        cnn_overlap = check_overlap(cnn_overlap, "cnn_overlap")
         require_number(
             "bin_fraction", bin_fraction, lambda v: 0 < v <= 1, "a fraction in (0, 1]"
         )
@@ -493,12 +440,6 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.sidescan_split = sidescan_split
         self.altimeter_split = altimeter_split
         self.normals = normals
-        self.cnn_checkpoint = cnn_checkpoint
-        self.cnn_runs_dir = cnn_runs_dir
-        self.cnn_scale = cnn_scale
-        self.window = window
-        self.cnn_precision = cnn_precision
-        self.cnn_overlap = cnn_overlap
         self.need_intensity = bool(need_intensity)
         self.batch_pings = int(batch_pings)
         self.altimeter_points = int(altimeter_points)
@@ -557,22 +498,17 @@ class PingAltimeterDataModule(pl.LightningDataModule):
         self.sensor = lines[0].sensor
         self.grid = survey.grid
         self.origin = dict(survey.origin or {})
-        ckpt = self.cnn_checkpoint
-        if self.normals == "cnn" and ckpt == "latest":
-            ckpt = str(latest_checkpoint(self.cnn_runs_dir, self.cnn_scale))
-            log.info("PingAltimeterDataModule: CNN checkpoint %s", ckpt)
+        if self.normals.source == "cnn":  # latest / pretrained -> the file, once
+            self.normals = self.normals.resolve()
+            log.info("PingAltimeterDataModule: CNN checkpoint %s", self.normals.checkpoint)
         table = build_ping_table(
             survey,
             folder,
             self.line_names,
             self.normals,
-            ckpt,
-            self.window,
             self.need_intensity,
             self.drape,
             self.sonar_mask,
-            self.cnn_precision,
-            self.cnn_overlap,
         )
         alt = self._fit_altimeter(survey)
         if alt.shape[0] == 0:

@@ -82,7 +82,7 @@ def arc_geometry(
         theta = rows[pi, si, bi].to(sonar.dtype)
         points = arc_point(sonar, rot, range_m, theta, si)
     # the SIREN blocks its points itself (Siren.chunk: cache-sized on CPU)
-    grad = siren.height_and_gradient(points[:, :2])[1]
+    height, grad = siren.height_and_gradient(points[:, :2])
     with autocast_disabled(sonar.device):
         n_lat, n_up = head_plane_normal_from_gradient(grad[:, 0], grad[:, 1], rot, si)
     geo = ArcGeometry(
@@ -98,6 +98,7 @@ def arc_geometry(
         ping=pi,
         bin=bi,
         line=batch["line"][pi],
+        height=height,
     )
     n_bins = use.sum().clamp_min(1)
     stats = {"valid_fraction": valid.sum() / n_bins, "finder_iters": n_iter.sum() / n_bins}

@@ -15,7 +15,7 @@ The two differ only in this component; everything else of the fit is shared.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
@@ -38,6 +38,8 @@ class ArcGeometry:
         ping: ``(N,)`` long, index of the ping within the batch.
         bin: ``(N,)`` long, bin index within the side.
         line: ``(N,)`` long, line index within the datamodule's sidescan lines.
+        height: ``(N,)`` SIREN height at the points' ``x, y``, **with graph** (None where the
+            caller did not keep it).
     """
 
     points: torch.Tensor
@@ -52,6 +54,16 @@ class ArcGeometry:
     ping: torch.Tensor
     bin: torch.Tensor
     line: torch.Tensor
+    height: torch.Tensor | None = None
+
+    def select(self, keep: torch.Tensor) -> ArcGeometry:
+        """The bins where ``keep`` ``(N,)`` bool is True, every field alike."""
+        return ArcGeometry(
+            **{
+                f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[keep]
+                for f in fields(self)
+            }
+        )
 
 
 class SensorModel(nn.Module):

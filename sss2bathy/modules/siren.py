@@ -41,6 +41,7 @@ from pytorch_lightning.callbacks import Callback
 
 from sss2bathy.callbacks import SirenMapExport, SirenMapImages
 from sss2bathy.data.siren_inputs import SirenInputs
+from sss2bathy.losses.shadow import depression_angle, occlusion_loss
 from sss2bathy.losses.siren import height_loss, total_loss
 from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.direct_fit import MBESCellFit
@@ -58,6 +59,7 @@ from sss2bathy.modules.siren_parts import (
     param_groups,
     swath_inputs,
 )
+from sss2bathy.survey.masks import MASK_SHADOW
 from sss2bathy.utils.checks import require_number
 
 log = logging.getLogger(__name__)
@@ -104,6 +106,10 @@ class SirenModule(pl.LightningModule):
             self-calibration of the CNN's bias, :mod:`sss2bathy.models.normal_sensor`); only
             with a :class:`~sss2bathy.models.normal_sensor.NormalSensorModel`.
         line_offset_weight: weight of the offsets' mean square in the loss (>= 0).
+        w_shadow: weight of the occlusion term (:mod:`sss2bathy.losses.shadow`, radians):
+            the bins the data mask as shadow (``MASK_SHADOW`` alone) must be hidden from the
+            sonar by what is closer along their ping, and the bins the sensor model uses
+            must be seen; 0 = off (the paper). With a sidescan sensor model only.
     """
 
     def __init__(
@@ -125,6 +131,7 @@ class SirenModule(pl.LightningModule):
         title: str | None = None,
         line_offset: bool = False,
         line_offset_weight: float = 1.0,
+        w_shadow: float = 0.0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -153,6 +160,14 @@ class SirenModule(pl.LightningModule):
             sensor.enable_line_offset(line_offset_weight)
         self.sensor = sensor
         self.w_height = float(w_height)
+        self.w_shadow = float(
+            require_number("w_shadow", w_shadow, lambda v: v >= 0, "a weight >= 0 (0 = off)")
+        )
+        if self.w_shadow > 0 and not isinstance(sensor, SensorModel):
+            raise ValueError(
+                f"w_shadow: expected 0 without a sidescan sensor model (found sensor "
+                f"{type(sensor).__name__}), found {w_shadow}"
+            )
         self.optimizer_factory = optimizer or (lambda params: torch.optim.Adam(params, lr=2e-4))
         self.scheduler_factory = scheduler
         self.finder = FinderSettings.from_mapping(finder)
@@ -255,12 +270,25 @@ class SirenModule(pl.LightningModule):
     ) -> tuple[ArcGeometry, torch.Tensor, dict[str, torch.Tensor]]:
         """:func:`~sss2bathy.models.arc_fit.arc_geometry` of the bins the sensor can use,
         and their targets."""
+        geo, stats, _ = self._crossings(batch, with_shadow=False)
+        return geo, batch[self.sensor.target_key][geo.ping, geo.side, geo.bin], stats
+
+    def _crossings(
+        self, batch: dict[str, torch.Tensor], with_shadow: bool
+    ) -> tuple[ArcGeometry, dict[str, torch.Tensor], torch.Tensor | None]:
+        """The crossings of the sensor's bins and, ``with_shadow``, also of the bins the data
+        mask as shadow: ``(geometry, finder statistics, (N,) bool shadow or None)``."""
         cache = self.theta_cache if self.theta_cache.numel() else None
         use = self.sensor.bin_mask(batch)
+        shadow_bins = None
+        if with_shadow:
+            shadow_bins = batch["mask"] == MASK_SHADOW
+            use = use | shadow_bins
         if "keep" in batch:  # the bins drawn for this step (data.bin_fraction < 1)
             use = use & batch["keep"]
         geo, stats = arc_geometry(self.siren, batch, use, self.theta_limits, self.finder, cache)
-        return geo, batch[self.sensor.target_key][geo.ping, geo.side, geo.bin], stats
+        shadow = None if shadow_bins is None else shadow_bins[geo.ping, geo.side, geo.bin]
+        return geo, stats, shadow
 
     def model_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Loss terms and statistics of one batch (module docstring)."""
@@ -271,13 +299,27 @@ class SirenModule(pl.LightningModule):
             return {"loss": loss, **logs, "loss_height": loss_height.detach()}
         if self.sensor is None:
             return {"loss": loss_height, "loss_height": loss_height.detach()}
-        geo, target, stats = self.sidescan_geometry(batch)
+        every, stats, shadow = self._crossings(batch, with_shadow=self.w_shadow > 0)
+        geo = every if shadow is None else every.select(~shadow)
+        target = batch[self.sensor.target_key][geo.ping, geo.side, geo.bin]
         loss_sensor, sensor_logs = self.sensor.loss(geo, target)
+        loss = total_loss(loss_sensor, loss_height, self.w_height)
+        out = {}
+        if shadow is not None:
+            angle = depression_angle(every.points, every.height, every.sonar)
+            shape = (int(batch["mask"].shape[0]), 2, int(batch["mask"].shape[-1]))
+            loss_shadow, shadow_logs = occlusion_loss(
+                angle, every.ping, every.side, every.bin, shadow, shape
+            )
+            loss = loss + self.w_shadow * loss_shadow
+            out["loss_shadow"] = loss_shadow.detach()
+            out.update({f"shadow/{k}": v for k, v in shadow_logs.items()})
         out = {
-            "loss": total_loss(loss_sensor, loss_height, self.w_height),
+            "loss": loss,
             "loss_sensor": loss_sensor.detach(),
             "loss_height": loss_height.detach(),
             **stats,
+            **out,
         }
         out.update({f"sensor/{k}": torch.as_tensor(v).detach() for k, v in sensor_logs.items()})
         return out

@@ -7,7 +7,7 @@ A Hydra run folder ``<run>/`` holds ``checkpoints/last.ckpt`` (the periodic save
 writes into the trainer's ``default_root_dir``) and ``.hydra/config.yaml`` (the composed
 config, whose ``scale.name`` says at which scale the run was trained).
 
-Used by the SIREN's ``cnn_checkpoint=latest`` and ``sss2bathy-predict ckpt_path=latest``
+Used by the SIREN's ``data.normals.checkpoint=latest`` and ``sss2bathy-predict ckpt_path=latest``
 (:func:`sss2bathy.data.cnn_normals.latest_checkpoint`: the newest CNN run) and by
 ``sss2bathy-train ckpt_path=last`` (:func:`sss2bathy.cli.instantiate.latest_resume_checkpoint`:
 the newest save of one run).
@@ -69,7 +69,7 @@ KIND_TITLES = {
 }
 #: Where each kind of checkpoint is used: the keys that take it.
 KIND_USES = {
-    KIND_CNN: "a CNN checkpoint goes to data.cnn_checkpoint (sss2bathy-map: cnn_checkpoint; "
+    KIND_CNN: "a CNN checkpoint goes to data.normals.checkpoint (sss2bathy-map: cnn_checkpoint; "
     "sss2bathy-predict: ckpt_path)",
     KIND_SIREN: "a SIREN checkpoint goes to ckpt_path of its own experiment (resume) or of "
     "sss2bathy-eval",

@@ -149,7 +149,7 @@ def test_map_names_keys_as_it_spells_them_and_leaves_no_run_folder(tmp_path):
         "def refuse(*a, **k):\n"
         "    raise ValueError(\"config key 'data.survey.altitude_tolerance_m': expected the \"\n"
         "        'altimeter within 0.5 m of the bottom, found 3.2 m; data.holdout.fraction '\n"
-        "        'and data.cnn_checkpoint untouched; paths.data.survey.x stays')\n"
+        "        'and data.normals.checkpoint untouched; paths.data.survey.x stays')\n"
         "m.run_map = refuse\n"
         f"sys.argv = ['sss2bathy-map', 'files=x.xtf', 'hydra.run.dir={run_dir}']\n"
         "m.main()\n"
@@ -175,12 +175,12 @@ def test_map_names_keys_as_it_spells_them_and_leaves_no_run_folder(tmp_path):
 
 
 def test_rename_keys_renames_whole_key_prefixes_only():
-    aliases = {"data.survey.": "survey.", "data.cnn_checkpoint": "cnn_checkpoint"}
+    aliases = {"data.survey.": "survey.", "data.normals.checkpoint": "cnn_checkpoint"}
     assert (
         rename_keys("data.survey.crs and 'data.survey.x'", aliases) == "survey.crs and 'survey.x'"
     )
     assert rename_keys("paths.data.survey.x", aliases) == "paths.data.survey.x"
-    assert rename_keys("data.cnn_checkpoint: none", aliases) == "cnn_checkpoint: none"
+    assert rename_keys("data.normals.checkpoint: none", aliases) == "cnn_checkpoint: none"
     assert rename_keys("data.survey.x", None) == "data.survey.x"
 
 

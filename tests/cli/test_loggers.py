@@ -183,7 +183,7 @@ def test_a_run_that_fails_in_setup_leaves_no_empty_tensorboard_run(tiny_root, ti
     proc = _train(
         tiny_root,
         tiny_data,
-        ["experiment=siren_cnn_n2d", "logger=tensorboard", "data.cnn_checkpoint=/no/such.ckpt"],
+        ["experiment=siren_cnn_n2d", "logger=tensorboard", "data.normals.checkpoint=/no/such.ckpt"],
     )
     assert proc.returncode != 0 and "/no/such.ckpt" in proc.stderr
     # a run that failed before writing anything leaves no run folder, so TensorBoard shows

@@ -313,7 +313,7 @@ def test_extra_input_channels_from_the_checkpoint(tmp_path):
 
 
 def test_latest_checkpoint(tmp_path):
-    with pytest.raises(ValueError, match="cnn_checkpoint"):
+    with pytest.raises(ValueError, match="data.normals.checkpoint: expected a trained CNN"):
         latest_checkpoint(tmp_path)
     paths = []
     for run in ("2024-01-01_10-00-00", "2024-01-02_10-00-00"):

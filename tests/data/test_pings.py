@@ -75,6 +75,11 @@ def tiny_survey(tmp_path_factory) -> Path:
     return make_tiny_survey(tmp_path_factory.mktemp("tiny") / "tiny_plane")
 
 
+def _cnn(**kw) -> dict:
+    """``data.normals`` of a CNN source (``latest`` under a runs folder unless given)."""
+    return {"source": "cnn", "checkpoint": "latest", "runs_dir": "runs", **kw}
+
+
 def _dm(folder: Path, **kw) -> PingAltimeterDataModule:
     cfg = {"kind": "folder", "path": str(folder)}
     kw.setdefault("batch_pings", 16)
@@ -160,10 +165,14 @@ def test_sidescan_only_masks_without_normals(tiny_survey):
 
 
 def test_steps_per_epoch_and_validation(tiny_survey):
-    with pytest.raises(ValueError, match="normals"):
+    with pytest.raises(ValueError, match="data.normals.source: expected one of"):
         _dm(tiny_survey, normals="mbes")
-    with pytest.raises(ValueError, match="cnn_checkpoint"):
+    with pytest.raises(ValueError, match="data.normals.checkpoint: expected a checkpoint path"):
         _dm(tiny_survey, normals="cnn")
+    with pytest.raises(ValueError, match="data.normals.precision: expected no CNN setting"):
+        _dm(tiny_survey, normals={"source": "gt", "precision": "bf16"})
+    with pytest.raises(ValueError, match="data.normals.chekpoint: expected one of"):
+        _dm(tiny_survey, normals={"source": "cnn", "chekpoint": "x.ckpt"})
     dm = _dm(tiny_survey, normals="none", steps_per_epoch=7, batch_pings=32)
     dm.setup("fit")
     batches = list(dm.train_dataloader())
@@ -199,14 +208,26 @@ def test_bin_fraction_draws_reproducible_bins_per_batch(tiny_survey):
         ({"need_intensity": 3}, "need_intensity: expected true or false, found 3"),
         ({"z_margin": -0.5}, "z_margin: expected a fraction >= 0, found -0.5"),
         ({"z_margin_m": "x"}, "z_margin_m: expected a number >= 0 (m), found 'x'"),
-        ({"window": {"window_pings": 0}}, "window.window_pings: expected a positive integer"),
-        ({"window": {"window_bins": -8}}, "window.window_bins: expected a positive integer"),
-        ({"window": {"overlap": 1.0}}, "window.overlap: expected a fraction in [0, 1), found 1.0"),
         (
-            {"cnn_precision": "fp16"},
-            "cnn_precision: expected one of ['fp32', 'bf16'], found 'fp16'",
+            {"normals": _cnn(window={"window_pings": 0})},
+            "data.normals.window.window_pings: expected a positive integer",
         ),
-        ({"cnn_overlap": 1.0}, "cnn_overlap: expected null (the training overlap) or a fraction"),
+        (
+            {"normals": _cnn(window={"window_bins": -8})},
+            "data.normals.window.window_bins: expected a positive integer",
+        ),
+        (
+            {"normals": _cnn(window={"overlap": 1.0})},
+            "data.normals.window.overlap: expected a fraction in [0, 1), found 1.0",
+        ),
+        (
+            {"normals": _cnn(precision="fp16")},
+            "data.normals.precision: expected one of ['fp32', 'bf16'], found 'fp16'",
+        ),
+        (
+            {"normals": _cnn(overlap=1.0)},
+            "data.normals.overlap: expected null (the training overlap) or a fraction",
+        ),
     ],
 )
 def test_constructor_names_the_bad_argument(tiny_survey, kw, message):
@@ -214,8 +235,8 @@ def test_constructor_names_the_bad_argument(tiny_survey, kw, message):
     with pytest.raises(ValueError) as err:
         _dm(tiny_survey, **kw)
     assert str(err.value).startswith(message)
-    dm = _dm(tiny_survey, window={"window_pings": 8, "window_bins": None, "overlap": 0.5})
-    assert dm.window == {"window_pings": 8, "window_bins": None, "overlap": 0.5}
+    dm = _dm(tiny_survey, normals=_cnn(window={"window_pings": 8, "overlap": 0.5}))
+    assert dm.normals.window == {"window_pings": 8, "overlap": 0.5}
 
 
 def test_build_ping_table_rejects_mixed_ranges(tiny_survey):
@@ -251,10 +272,7 @@ def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
     _tiny_checkpoint(tmp_path)
     dm = _dm(
         tiny_survey,
-        normals="cnn",
-        cnn_checkpoint="latest",
-        cnn_runs_dir=str(tmp_path / "runs" / "cnn"),
-        window=WINDOW,
+        normals=_cnn(runs_dir=str(tmp_path / "runs" / "cnn"), window=WINDOW),
     )
     dm.setup("fit")
     lambert = _dm(tiny_survey, normals="none", need_intensity=True)
@@ -280,7 +298,7 @@ def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels)
     bare = Survey.load(tiny_survey)
     bare.grid = None
     names = ["north", "east"]
-    kw = {"normals": "cnn", "cnn_checkpoint": ckpt, "window": WINDOW, "need_intensity": True}
+    kw = {"normals": _cnn(checkpoint=str(ckpt), window=WINDOW), "need_intensity": True}
     a = build_ping_table(with_grid, tmp_path / "with_grid", names, **kw)
     b = build_ping_table(bare, tmp_path / "bare", names, **kw)
     assert torch.equal(a.mask, b.mask)

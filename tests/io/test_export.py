@@ -15,6 +15,7 @@ import rasterio
 import sss2bathy
 from sss2bathy.callbacks import RunHparams
 from sss2bathy.callbacks.writers import map_provenance
+from sss2bathy.data.normal_source import NormalSource
 from sss2bathy.eval.maps import grid_over_bounds, save_map_outputs
 from sss2bathy.io.export import VERTICAL_REFERENCE, provenance_tags, write_geotiff
 
@@ -60,7 +61,7 @@ def test_map_export_carries_the_runs_provenance(tmp_path):
     trainer = SimpleNamespace(
         callbacks=[RunHparams(run={"experiment": "siren_cnn_n2d"})],
         datamodule=SimpleNamespace(
-            normals="cnn", cnn_checkpoint=str(ckpt), survey_cfg={"kind": "xtf"}
+            normals=NormalSource("cnn", checkpoint=str(ckpt)), survey_cfg={"kind": "xtf"}
         ),
     )
     pred = grid_over_bounds((0.0, 0.0, 8.0, 6.0), 1.0, origin=ORIGINS[1])

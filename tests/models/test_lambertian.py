@@ -618,8 +618,7 @@ def test_model_swap_changes_only_the_sensor():
          {"data.sidescan_split", "data.altimeter_split", "data.steps_per_epoch",
           "model.log_images", "callbacks.lambert_curves", "torch_threads"}),
         ("d2_siren_cnn_n2d", "d2_siren_lambert",
-         {"data.normals", "data.need_intensity", "data.cnn_checkpoint",
-          "callbacks.lambert_curves"}),
+         {"data.normals", "data.need_intensity", "callbacks.lambert_curves"}),
         ("siren_cnn_n2d", "d2_siren_cnn_n2d",
          {"data.survey", "data.sidescan_split", "data.altimeter_split", "model.siren.hidden",
           "trainer.max_epochs"}),
@@ -640,7 +639,7 @@ def test_experiment_values():
     assert (cfg.task_name, cfg.data.sidescan_split, cfg.data.altimeter_split) == (
         "siren_lambert", "test", "test"
     )  # fmt: skip
-    assert cfg.data.normals == "none" and cfg.data.need_intensity is True
+    assert dict(cfg.data.normals) == {"source": "none"} and cfg.data.need_intensity is True
     assert cfg.callbacks.lambert_curves.every_n_epochs == cfg.model.eval_every_n_epochs
     cfg = _compose("experiment=siren_lambert_all")
     assert (cfg.data.sidescan_split, cfg.data.altimeter_split) == ("all", "test")

@@ -244,12 +244,12 @@ def test_line_offsets_only_with_the_normal_sensor():
 
 def test_cnn_experiment_config(tmp_path, tiny_survey):
     cfg = _compose(tmp_path, "siren_cnn_n2d", tiny_survey)
-    assert cfg.data.normals == "cnn" and cfg.data.cnn_checkpoint == "latest"
-    assert cfg.data.cnn_runs_dir == os.path.join(str(tmp_path / "outputs"), "runs", "cnn")
+    assert cfg.data.normals.source == "cnn" and cfg.data.normals.checkpoint == "latest"
+    assert cfg.data.normals.runs_dir == os.path.join(str(tmp_path / "outputs"), "runs", "cnn")
     model = hydra.utils.instantiate(cfg.model)
     assert isinstance(model, SirenModule) and model.finder.solver == "secant"
     dm = hydra.utils.instantiate(cfg.data, _recursive_=False)
-    with pytest.raises(ValueError, match="cnn_checkpoint"):
+    with pytest.raises(ValueError, match="data.normals.checkpoint: expected a trained CNN"):
         dm.setup("fit")  # no CNN trained under this output dir
 
 

@@ -119,8 +119,8 @@ def test_loading_validates_the_metadata_in_one_line(exported, tmp_path, field, v
     with pytest.raises(ValueError, match=message) as err:
         load_normal_net(path)
     assert "\n" not in str(err.value) and "m.json" in str(err.value)
-    with pytest.raises(ValueError, match="data.cnn_checkpoint: .*m.json"):
-        check_cnn_model(path, "data.cnn_checkpoint")
+    with pytest.raises(ValueError, match="data.normals.checkpoint: .*m.json"):
+        check_cnn_model(path, "data.normals.checkpoint")
 
 
 def test_changed_weights_or_a_missing_metadata_file_are_refused(exported, tmp_path):

@@ -22,6 +22,7 @@ from sss2bathy.cli.map import (
 )
 from sss2bathy.cli.train import check_checkpoints
 from sss2bathy.data import cnn_normals
+from sss2bathy.data.normal_source import NormalSource
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -105,18 +106,20 @@ def test_the_fit_reads_the_shipped_model_before_any_data(exported, tmp_path, mon
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = _map_cfg(tmp_path)
         train_cfg = compose_train_config(cfg, tmp_path / "run", {"scale": "tiny"})
-    assert train_cfg.data.normals == "cnn"
-    assert train_cfg.data.cnn_checkpoint == str(shipped.resolve())
+    assert train_cfg.data.normals.source == "cnn"
+    assert train_cfg.data.normals.checkpoint == str(shipped.resolve())
     check_checkpoints(train_cfg, None, None)  # the exported model reads as a CNN
     for given in ("pretrained", str(exported)):
         check_checkpoints(
-            OmegaConf.create({"data": {"normals": "cnn", "cnn_checkpoint": given}}), None, None
+            OmegaConf.create({"data": {"normals": {"source": "cnn", "checkpoint": given}}}),
+            None,
+            None,
         )
     meta = json.loads(shipped.with_suffix(".json").read_text())
     meta["windows"]["overlap"] = 2
     shipped.with_suffix(".json").write_text(json.dumps(meta))
     with pytest.raises(
-        ValueError, match=r"data.cnn_checkpoint: .*normal_cnn.json: windows.overlap"
+        ValueError, match=r"data.normals.checkpoint: .*normal_cnn.json: windows.overlap"
     ):
         check_checkpoints(train_cfg, None, None)
 
@@ -130,7 +133,7 @@ def test_the_pretrained_experiments_take_the_shipped_cnn(
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         base = compose("train", overrides=[f"experiment={experiment}", "scale=tiny"])
         cfg = compose("train", overrides=[f"experiment={experiment}_pretrained", "scale=tiny"])
-    assert cfg.data.cnn_checkpoint == "pretrained" and cfg.data.normals == "cnn"
+    assert cfg.data.normals.checkpoint == "pretrained" and cfg.data.normals.source == "cnn"
     assert cfg.task_name == f"{experiment}_pretrained"
     # everything else is the experiment's own (its survey, splits, SIREN)
     assert cfg.data.survey.name == base.data.survey.name
@@ -138,5 +141,5 @@ def test_the_pretrained_experiments_take_the_shipped_cnn(
     assert cfg.model.siren == base.model.siren
     check_checkpoints(cfg, None, None)
     # the map's provenance names the shipped file (its SHA-256 goes into map.tif)
-    dm = SimpleNamespace(normals="cnn", cnn_checkpoint="pretrained")
+    dm = SimpleNamespace(normals=NormalSource("cnn", checkpoint="pretrained"))
     assert cnn_checkpoint_of(dm) == tmp_path / "pkg" / "normal_cnn.safetensors"

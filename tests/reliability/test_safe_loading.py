@@ -3,7 +3,7 @@ with ``weights_only=True``; a checkpoint carrying code is refused, its code neve
 every ``torch.load`` / ``np.load`` in the package is a safe one.
 
 A checkpoint that is truncated, not a checkpoint, or of the wrong kind (a CNN's as the
-SIREN's ``ckpt_path``, a SIREN's as ``data.cnn_checkpoint``) is one line naming the key, the
+SIREN's ``ckpt_path``, a SIREN's as ``data.normals.checkpoint``) is one line naming the key, the
 file and what it is, before any data is made; never torch's advice to load unsafely."""
 
 from __future__ import annotations
@@ -172,12 +172,12 @@ def test_checkpoint_kinds_are_told_apart(kinds):
         ("CNN", "siren_gt_n2d", "ckpt_path", "is a CNN checkpoint (NormalCNNModule"),
         ("Lambert", "siren_gt_n2d", "ckpt_path", "is a Lambert checkpoint"),
         ("SIREN", "cnn", "ckpt_path", "is a SIREN checkpoint"),
-        ("SIREN", "siren_cnn_n2d", "data.cnn_checkpoint", "is a SIREN checkpoint"),
-        ("Lambert", "siren_cnn_n2d", "data.cnn_checkpoint", "is a Lambert checkpoint"),
+        ("SIREN", "siren_cnn_n2d", "data.normals.checkpoint", "is a SIREN checkpoint"),
+        ("Lambert", "siren_cnn_n2d", "data.normals.checkpoint", "is a Lambert checkpoint"),
         ("truncated", "siren_gt_n2d", "ckpt_path", DAMAGE["truncated"]),
-        ("truncated", "siren_cnn_n2d", "data.cnn_checkpoint", DAMAGE["truncated"]),
-        ("random", "siren_cnn_n2d", "data.cnn_checkpoint", DAMAGE["random"]),
-        ("code pickle", "siren_cnn_n2d", "data.cnn_checkpoint", DAMAGE["code pickle"]),
+        ("truncated", "siren_cnn_n2d", "data.normals.checkpoint", DAMAGE["truncated"]),
+        ("random", "siren_cnn_n2d", "data.normals.checkpoint", DAMAGE["random"]),
+        ("code pickle", "siren_cnn_n2d", "data.normals.checkpoint", DAMAGE["code pickle"]),
     ],
 )
 def test_a_wrong_checkpoint_stops_the_run_before_any_data_is_made(
@@ -190,13 +190,13 @@ def test_a_wrong_checkpoint_stops_the_run_before_any_data_is_made(
     else:
         overrides = siren_overrides(plane_survey, data)
         overrides[0] = f"experiment={experiment}"
-    setting = f"{key}={path}" if key == "ckpt_path" else f"data.cnn_checkpoint={path}"
+    setting = f"{key}={path}" if key == "ckpt_path" else f"data.normals.checkpoint={path}"
     run = tmp_path / "run"
     with pytest.raises(ValueError) as err:
         train(compose_run(overrides + [setting], run), run)
     _assert_one_line(err.value, key, path, expected)
     if given in kinds:  # says where a checkpoint of that kind belongs
-        assert ("data.cnn_checkpoint" if given == "CNN" else "ckpt_path of") in str(err.value)
+        assert ("data.normals.checkpoint" if given == "CNN" else "ckpt_path of") in str(err.value)
     assert not data.exists()  # failed before the data module made anything
 
 
@@ -221,8 +221,8 @@ def test_cli_wrong_checkpoints_are_one_stderr_line_and_exit_2(tmp_path, plane_su
     cases = [
         ([f"ckpt_path={kinds['CNN']}"], f"error: ckpt_path: {kinds['CNN']} is a CNN checkpoint"),
         (
-            ["experiment=siren_cnn_n2d", f"data.cnn_checkpoint={truncated}"],
-            f"error: data.cnn_checkpoint: {truncated} is truncated",
+            ["experiment=siren_cnn_n2d", f"data.normals.checkpoint={truncated}"],
+            f"error: data.normals.checkpoint: {truncated} is truncated",
         ),
     ]
     for extra, start in cases:

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
 
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
-# the CNN runs first: the SIREN-CNN-N2d experiments take its checkpoint (data.cnn_checkpoint)
+# the CNN runs first: the SIREN-CNN-N2d experiments take its checkpoint (data.normals.checkpoint)
 SIREN_EXPERIMENTS = [e for e in EXPERIMENTS if e != "cnn"]
 
 
