@@ -40,6 +40,7 @@ OVERRIDE_KEY = {"loss": "loss@model.loss"}
 # what an option needs beside it to make sense (by group, or by (group, option))
 BASE = {
     "loss": ["experiment=cnn"],
+    "data/normals": ["experiment=siren_gt_n2d"],
     ("callbacks", "lambert_curves"): ["experiment=siren_lambert"],
     ("hparams_search", "cnn_optuna"): ["experiment=cnn"],
     ("hparams_search", "siren_optuna"): ["experiment=siren_lambert"],
