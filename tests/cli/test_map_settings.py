@@ -12,6 +12,7 @@ from omegaconf import OmegaConf, open_dict
 
 from sss2bathy.cli.map_settings import (
     MAX_OMEGA0,
+    SURVEY_W_SHADOW,
     SurveyScale,
     apply_map_settings,
     choose_map_settings,
@@ -49,7 +50,11 @@ def test_omega0_puts_the_first_layers_finest_wavelength_at_half_the_range():
     assert s.wavelength_m == pytest.approx(15.0)
     # a finer SIREN gets the fast schedule's steps: 720 pings / 16 = 45 < 80
     assert s.steps_per_epoch == 80
-    assert s.overrides() == {"model.siren.omega0": round(s.omega0, 3), "data.steps_per_epoch": 80}
+    assert s.overrides() == {
+        "model.siren.omega0": round(s.omega0, 3),
+        "data.steps_per_epoch": 80,
+        "model.w_shadow": SURVEY_W_SHADOW,  # a SIREN fine enough for objects: their shadows
+    }
     # the extent enters through its larger half-width; a longer range means coarser detail
     wide = choose_map_settings(scale(half=(75.0, 150.0)), 10.0, None, 80, 16)
     assert wide.omega0 == pytest.approx(2 * s.omega0)
@@ -60,6 +65,7 @@ def test_omega0_puts_the_first_layers_finest_wavelength_at_half_the_range():
 def test_never_coarser_than_the_scale_and_capped():
     big = choose_map_settings(scale(range_m=300.0, half=(300.0, 300.0)), 30.0, None, 80, 16)
     assert big.omega0 == 30.0 and big.steps_per_epoch is None  # the scale's own: unchanged
+    assert big.w_shadow == 0.0 and "model.w_shadow" not in big.overrides()
     tiny_range = choose_map_settings(scale(range_m=2.0), 10.0, None, 80, 16)
     assert tiny_range.omega0 == MAX_OMEGA0
     # steps already at least the fast count stay
@@ -71,9 +77,9 @@ def test_never_coarser_than_the_scale_and_capped():
         SurveyScale(0.0, 0.1, 1.0, (1.0, 1.0), 1)
 
 
-def _map_train_cfg(*overrides: str):
+def _map_train_cfg(*overrides: str, experiment: str = "siren_lambert"):
     with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=siren_lambert", "scale=tiny",
+        cfg = compose("train", overrides=[f"experiment={experiment}", "scale=tiny",
                                           "data/survey=xtf", "data.survey.files=/nowhere",
                                           *overrides])  # fmt: skip
     return cfg
@@ -85,6 +91,12 @@ def test_apply_leaves_what_the_user_set():
         applied = apply_map_settings(cfg, scale(pings=320), [])
     assert cfg.model.siren.omega0 == applied["model.siren.omega0"] > 5.0
     assert cfg.data.steps_per_epoch == 40  # scale=tiny's fast count (320 / 16 = 20 before)
+    assert cfg.model.w_shadow == SURVEY_W_SHADOW == applied["model.w_shadow"]
+    # heights only has no sidescan sensor model: no occlusion term
+    cfg = _map_train_cfg(experiment="siren_heights_only")
+    with open_dict(cfg):
+        applied = apply_map_settings(cfg, scale(pings=320), [])
+    assert "model.w_shadow" not in applied and cfg.model.w_shadow == 0.0
     user = ["model.siren.omega0=7", "+data.steps_per_epoch=12"]
     cfg = _map_train_cfg("model.siren.omega0=7", "data.steps_per_epoch=12")
     with open_dict(cfg):
