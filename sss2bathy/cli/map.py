@@ -89,7 +89,7 @@ HELP = CliHelp(
         ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
         (
             "map_settings=NAME",
-            "scale (default: smooth) | survey (finer detail from the sonar's range)",
+            "scale (default: smooth) | survey (finer detail from the sonar's range; objects rise)",
         ),
         ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
         (
@@ -203,7 +203,8 @@ MAP_SETTINGS = ("scale", "survey")
 
 def map_settings_choice(cfg: Mapping[str, Any]) -> str:
     """``map_settings``: ``scale`` (the scale preset's SIREN settings) or ``survey`` (omega0
-    and steps from the survey's sonar range and extent, :mod:`sss2bathy.cli.map_settings`)."""
+    and steps from the survey's sonar range and extent, with the occlusion term,
+    :mod:`sss2bathy.cli.map_settings`)."""
     choice = cfg.get("map_settings") or "scale"
     if choice not in MAP_SETTINGS:
         raise ValueError(
