@@ -16,6 +16,21 @@ from __future__ import annotations
 import torch
 
 
+def extended_shadow(shadow: torch.Tensor, min_bins: int) -> torch.Tensor:
+    """``shadow`` ``(..., B)`` bool kept only where it is part of a run of at least
+    ``min_bins`` consecutive bins along range (a morphological opening): a wreck's or a rock's
+    shadow is extended, a dark speckle at far range is not. ``min_bins`` <= 1: unchanged."""
+    k = int(min_bins)
+    if k <= 1 or shadow.shape[-1] < k:
+        return shadow if k <= 1 else torch.zeros_like(shadow)
+    x = shadow.to(torch.float32).reshape(-1, 1, shadow.shape[-1])
+    ones = torch.ones(1, 1, k, dtype=x.dtype, device=x.device)
+    # a window of k bins all in shadow (erosion), then every bin of such a window (dilation)
+    full = torch.nn.functional.conv1d(x, ones) >= k - 0.5
+    opened = torch.nn.functional.conv1d(full.to(x.dtype), ones, padding=k - 1) > 0.5
+    return opened.reshape(shadow.shape) & shadow
+
+
 def depression_angle(
     points: torch.Tensor, height: torch.Tensor, sonar: torch.Tensor
 ) -> torch.Tensor:
@@ -70,4 +85,4 @@ def occlusion_loss(
     return loss, logs
 
 
-__all__ = ["depression_angle", "occluding_angle", "occlusion_loss"]
+__all__ = ["depression_angle", "extended_shadow", "occluding_angle", "occlusion_loss"]

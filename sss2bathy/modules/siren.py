@@ -41,7 +41,7 @@ from pytorch_lightning.callbacks import Callback
 
 from sss2bathy.callbacks import SirenMapExport, SirenMapImages
 from sss2bathy.data.siren_inputs import SirenInputs
-from sss2bathy.losses.shadow import depression_angle, occlusion_loss
+from sss2bathy.losses.shadow import depression_angle, extended_shadow, occlusion_loss
 from sss2bathy.losses.siren import height_loss, total_loss
 from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.direct_fit import MBESCellFit
@@ -110,6 +110,8 @@ class SirenModule(pl.LightningModule):
             the bins the data mask as shadow (``MASK_SHADOW`` alone) must be hidden from the
             sonar by what is closer along their ping, and the bins the sensor model uses
             must be seen; 0 = off (the paper). With a sidescan sensor model only.
+        shadow_min_m: a shadow counts only where it runs at least this far along range (m;
+            a morphological opening of the mask: dark speckle at far range is no shadow).
     """
 
     def __init__(
@@ -132,6 +134,7 @@ class SirenModule(pl.LightningModule):
         line_offset: bool = False,
         line_offset_weight: float = 1.0,
         w_shadow: float = 0.0,
+        shadow_min_m: float = 0.25,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -162,6 +165,9 @@ class SirenModule(pl.LightningModule):
         self.w_height = float(w_height)
         self.w_shadow = float(
             require_number("w_shadow", w_shadow, lambda v: v >= 0, "a weight >= 0 (0 = off)")
+        )
+        self.shadow_min_m = float(
+            require_number("shadow_min_m", shadow_min_m, lambda v: v >= 0, "a length >= 0 (m)")
         )
         if self.w_shadow > 0 and not isinstance(sensor, SensorModel):
             raise ValueError(
@@ -282,7 +288,9 @@ class SirenModule(pl.LightningModule):
         use = self.sensor.bin_mask(batch)
         shadow_bins = None
         if with_shadow:
-            shadow_bins = batch["mask"] == MASK_SHADOW
+            spacing = batch["range_m"].diff().median().clamp_min(1e-6)
+            min_bins = int(math.ceil(self.shadow_min_m / float(spacing) - 1e-6))
+            shadow_bins = extended_shadow(batch["mask"] == MASK_SHADOW, min_bins)
             use = use | shadow_bins
         if "keep" in batch:  # the bins drawn for this step (data.bin_fraction < 1)
             use = use & batch["keep"]

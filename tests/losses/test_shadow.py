@@ -7,7 +7,12 @@ import math
 
 import torch
 
-from sss2bathy.losses.shadow import depression_angle, occluding_angle, occlusion_loss
+from sss2bathy.losses.shadow import (
+    depression_angle,
+    extended_shadow,
+    occluding_angle,
+    occlusion_loss,
+)
 
 ALTITUDE = 10.0
 
@@ -70,3 +75,11 @@ def test_pings_and_sides_do_not_occlude_each_other():
     occluder = occluding_angle(angle, ping, side, bins, (2, 2, 2))
     assert math.isinf(float(occluder[2])) and float(occluder[3]) == float(angle[2])
     assert float(occluder[1]) == float(angle[0])
+
+
+def test_a_shadow_is_a_run_of_bins_not_a_dark_speckle():
+    s = torch.tensor([[0, 1, 0, 1, 1, 0, 1, 1, 1, 1, 0, 1]], dtype=torch.bool)
+    assert extended_shadow(s, 3).int().tolist() == [[0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 0, 0]]
+    assert extended_shadow(s, 2).int().tolist() == [[0, 0, 0, 1, 1, 0, 1, 1, 1, 1, 0, 0]]
+    assert torch.equal(extended_shadow(s, 1), s) and torch.equal(extended_shadow(s, 0), s)
+    assert not extended_shadow(s, 13).any()  # longer than the row

@@ -163,6 +163,7 @@ def _fit_from_config(cfg):
         ("siren_gt_n2d", ["model.sensor=null"]),
         ("siren_gt_n2d", ["model.line_offset=true"]),
         ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
+        ("siren_gt_n2d", ["model.w_shadow=100"]),
         ("siren_gt_n2d", ["siren_schedule=budget", "scale.siren.budget_s=600"]),
     ],
 )
@@ -189,6 +190,11 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
         assert metrics["train/valid_fraction"] > 0.5
         assert 0 < metrics["train/finder_iters"] <= 16
         assert torch.isfinite(model.theta_cache).sum() > 0
+        if "model.w_shadow=100" in extra:  # the occlusion term beside the sensor's
+            assert torch.isfinite(metrics["train/loss_shadow"])
+            assert 0 <= float(metrics["train/shadow/lit_hidden"]) <= 1
+        else:
+            assert "train/loss_shadow" not in metrics
         if "data.bin_fraction=0.25" in extra:  # a step uses only the batch's drawn bins
             batch = next(iter(dm.train_dataloader()))
             with torch.no_grad():
@@ -240,6 +246,15 @@ def test_line_offsets_only_with_the_normal_sensor():
             line_offset_weight=-1.0,
         )
     SirenModule(Siren(hidden=8, n_layers=3), sensor=lambert)  # off: any sensor
+
+
+def test_the_occlusion_term_needs_a_sidescan_sensor():
+    with pytest.raises(ValueError, match="w_shadow: expected 0 without a sidescan sensor"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, w_shadow=1.0)
+    with pytest.raises(ValueError, match="w_shadow: expected a weight >= 0"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=LambertianSensorModel(), w_shadow=-1)
+    with pytest.raises(ValueError, match="shadow_min_m: expected a length >= 0"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=LambertianSensorModel(), shadow_min_m=-1)
 
 
 def test_cnn_experiment_config(tmp_path, tiny_survey):
