@@ -20,8 +20,8 @@ height is in the shadow an object casts, which the masks drop and no sensor mode
 a finer SIREN therefore also gets the occlusion term (``model.w_shadow``,
 :mod:`sss2bathy.losses.shadow`, :data:`SURVEY_W_SHADOW`), which makes the bins masked as
 shadow hidden by what is closer along their ping. On the same survey it raised SIREN-Lambert's
-objects to 0.8-2.0 m (object height MAE 1.43 -> 0.92 m, visible 20 -> 80 %) at map MAE
-0.299 m (0.312 without it); weights 10 and 100 changed nothing, 1000 raised the objects as
+objects to 0.6-1.9 m (object height MAE 1.43 -> 0.89 m, visible 20 -> 80 %) at map MAE
+0.319 m (0.312 without it); weights 10 and 100 changed little, 1000 raised the objects as
 much at map MAE 0.342 m.
 
 Pure functions of numbers (:func:`choose_map_settings`); :func:`survey_scale` measures the
