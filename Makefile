@@ -134,6 +134,10 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 	$(TUNE_TRAIN) model.sensor.reflectivity=field model.sensor.field_weight=0,0.1 hydra.sweep.dir=$(TUNE)/field_weight $(ARGS)
 	$(BIN)/python -m studies.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
+.PHONY: wreck-study
+wreck-study: install ## Do the maps show wrecks? Lambert, GT-N2d, heights-only on a simulated survey with five objects, the scale's settings vs map_settings=survey (finer SIREN + occlusion term), one fit at a time (~20 min demo) -> outputs/wreck_study/
+	OMP_NUM_THREADS=1 $(BIN)/python -m studies.wreck_study --scale $(SCALE) --out outputs/wreck_study/$(SCALE) $(ARGS)
+
 .PHONY: valsite-study
 VALSITE := outputs/valsite_study/$(SCALE)
 VALSITE_TRAIN := $(BIN)/sss2bathy-train data/survey=synthetic_d1_valsite scale=$(SCALE) torch_threads=1 model.log_images=false

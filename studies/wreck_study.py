@@ -7,7 +7,8 @@
 Generates ``data/survey=synthetic_wrecks`` (five hulls and boxes 1-4 m high beside the
 tracks of an AUV sidescan, ``conf/data/survey/synthetic_wrecks.yaml``), fits each method with
 the scale's own settings (``scale``) and with those the map route chooses for the survey's
-scale (``chosen``: :func:`sss2bathy.cli.map_settings.apply_map_settings`), plus any
+scale (``chosen``: :func:`sss2bathy.cli.map_settings.apply_map_settings`, the finer SIREN
+and, for the sidescan methods, the occlusion term), plus any
 ``--variant``, one ``sss2bathy-train`` process at a time (one torch thread), and scores
 every map against the true grid: each object's height above its surroundings
 (:func:`sss2bathy.sim.terrain.object_relief`, the same number on the true grid is the

@@ -52,6 +52,8 @@ PREPARE = "sss2bathy.cli.prepare"
 TRAIN = "sss2bathy.cli.train"
 REPORT = "sss2bathy.cli.report"
 HELP_FLAGS = ("-h", "--help")
+#: how long a finished stage's output is still copied (a worker it left may hold it open)
+READER_GRACE_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,7 @@ def usage() -> str:
     targets = list(dict.fromkeys(e.make for e in experiments))
     return (
         "usage: python -m sss2bathy.cli.pipeline [scale=<tiny|demo|paper>] "
-        "[stages=[a,b,...] | make=<target> | needs=[a,...]] "
+        "[stages=[a,b,...] | make=<target> | needs=[a,...]] [jobs=N] "
         "[<Hydra override> ...]\n\n"
         + (__doc__ or "").strip()
         + "\n\nstages, in order: "
@@ -319,12 +321,14 @@ class Lane:
         self.readers.append(reader)
 
     def finish(self) -> float:
-        """Seconds since the start, once its output is copied."""
+        """Seconds from the start to the exit; returns once the output is copied (waiting at
+        most :data:`READER_GRACE_S`: a worker the stage left behind may hold it open)."""
+        seconds = time.perf_counter() - self.t0
         for reader in self.readers:
-            reader.join()
-        if self.log is not None:
+            reader.join(timeout=READER_GRACE_S)
+        if self.log is not None and not any(r.is_alive() for r in self.readers):
             self.log.close()
-        return time.perf_counter() - self.t0
+        return seconds
 
 
 _PRINT = threading.Lock()

@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -261,3 +262,20 @@ def test_the_wall_time_sits_beside_the_stage_times_until_a_new_run_starts(tmp_pa
     assert data["seconds"]["total"] == 125.0
     record_wall(path, None, None)
     assert "wall_seconds" not in json.loads(path.read_text())
+
+
+def test_a_worker_left_holding_a_stages_output_does_not_hold_the_pipeline(tmp_path, monkeypatch):
+    import sss2bathy.cli.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "READER_GRACE_S", 0.5)
+    leaves_a_worker = (
+        "import subprocess, sys; "
+        "subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(20)']); print('bye')"
+    )
+    plan = [Stage("prepare_a", "sss2bathy.cli.prepare", ())]
+    t0 = time.perf_counter()
+    code = run_plan(
+        plan, 2, lambda s: [sys.executable, "-c", leaves_a_worker], tmp_path, tmp_path / "logs",
+        lambda s, t: None,
+    )  # fmt: skip
+    assert code == 0 and time.perf_counter() - t0 < 10
