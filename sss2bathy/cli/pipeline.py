@@ -399,6 +399,10 @@ def run_plan(
     if failed is not None:
         print(f"stage '{failed[0]}' failed (exit {failed[1]}); stopping.", file=sys.stderr)
         return failed[1]
+    if pending:  # cannot happen with a checked plan (needs name earlier stages)
+        names = [s.name for s in pending]
+        print(f"stages {names} wait for stages that never ran; stopping.", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -279,3 +279,16 @@ def test_a_worker_left_holding_a_stages_output_does_not_hold_the_pipeline(tmp_pa
         lambda s, t: None,
     )  # fmt: skip
     assert code == 0 and time.perf_counter() - t0 < 10
+
+
+def test_a_stage_waiting_for_one_that_never_runs_is_an_error_not_a_silent_success(
+    tmp_path, capfd, monkeypatch
+):
+    import sss2bathy.cli.pipeline as pipeline
+
+    plan = [Stage("fit", "sss2bathy.cli.train", ()), Stage("report", "x", ())]
+    # the fit waits for itself: never ready (a checked plan cannot do this)
+    monkeypatch.setattr(pipeline, "dependencies", lambda plan: {"fit": {"fit"}, "report": {"fit"}})
+    code = run_plan(plan, 2, lambda s: [sys.executable, "-c", ""], tmp_path, None, print)
+    assert code == 1
+    assert "wait for stages that never ran" in capfd.readouterr().err
