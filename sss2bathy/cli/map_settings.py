@@ -241,11 +241,11 @@ def apply_map_settings(train_cfg: Any, scale: SurveyScale, user_overrides: Seque
     # the occlusion term needs a sidescan sensor model (not heights only, not a grid fit)
     sensor = OmegaConf.select(train_cfg, "model.sensor._target_", default=None)
     sidescan = sensor in SIDESCAN_SENSORS
+    # the occlusion term goes with the finer SIREN: not where the user chose omega0
+    shadow = sidescan and "model.siren.omega0" not in user
     applied = {}
     for key, value in settings.overrides().items():
-        # the occlusion term goes with the finer SIREN: not where the user chose omega0
-        finer = "model.siren.omega0" not in user
-        if key in user or (key == "model.w_shadow" and not (sidescan and finer)):
+        if key in user or (key == "model.w_shadow" and not shadow):
             continue
         OmegaConf.update(train_cfg, key, value, merge=False)
         applied[key] = value

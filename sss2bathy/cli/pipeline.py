@@ -91,26 +91,29 @@ def dependencies(plan: list[Stage]) -> dict[str, set[str]]:
     return deps
 
 
+def first_ready(pending: list[Stage], deps: dict[str, set[str]], done: set[str]) -> Stage | None:
+    """The first stage of ``pending`` (plan order) whose dependencies are all ``done``."""
+    return next((s for s in pending if deps[s.name] <= done), None)
+
+
 def schedule(plan: list[Stage], jobs: int, durations: dict[str, float]) -> float:
     """The wall time of running ``plan`` ``jobs`` at a time, as :func:`run_plan` orders it
     (ready stages in plan order), with each stage taking ``durations[name]`` seconds: what
     ``jobs=`` buys, without running anything."""
     deps = dependencies(plan)
-    done: dict[str, float] = {}
+    done: set[str] = set()
     running: dict[str, float] = {}  # name -> end time
-    pending = [s.name for s in plan]
+    pending = list(plan)
     now = 0.0
     while pending or running:
-        ready = [n for n in pending if deps[n] <= set(done)]
-        while ready and len(running) < jobs:
-            name = ready.pop(0)
-            pending.remove(name)
-            running[name] = now + durations[name]
+        while len(running) < jobs and (ready := first_ready(pending, deps, done)) is not None:
+            pending.remove(ready)
+            running[ready.name] = now + durations[ready.name]
         if not running:
-            raise ValueError(f"stages {pending} wait for stages that never run")
+            raise ValueError(f"stages {[s.name for s in pending]} wait for stages that never run")
         name = min(running, key=running.__getitem__)
         now = running.pop(name)
-        done[name] = now
+        done.add(name)
     return now
 
 
@@ -360,7 +363,7 @@ def run_plan(
     try:
         while pending or running:
             while failed is None and len(running) < jobs:
-                ready = next((s for s in pending if deps[s.name] <= done), None)
+                ready = first_ready(pending, deps, done)
                 if ready is None:
                     break
                 pending.remove(ready)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
 from typing import Any
 
 from sss2bathy.data.cnn_normals import check_overlap, check_precision, resolve_cnn_checkpoint
@@ -129,14 +128,3 @@ class NormalSource:
             self.checkpoint, self.runs_dir, self.scale, key=f"{KEY}.checkpoint"
         )
         return replace(self, checkpoint=str(path))
-
-    def to_dict(self) -> dict[str, Any]:
-        """The fields as plain values (what ``data.normals`` holds)."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    @property
-    def checkpoint_path(self) -> Path | None:
-        """``checkpoint`` as a path (``cnn`` with a resolved file; None otherwise)."""
-        if self.source != "cnn" or self.checkpoint in (None, "latest", "pretrained"):
-            return None
-        return Path(self.checkpoint)

@@ -13,6 +13,8 @@ closer (the object's top) or lower the shadowed seabed; the altimeter anchors th
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 
@@ -29,6 +31,13 @@ def extended_shadow(shadow: torch.Tensor, min_bins: int) -> torch.Tensor:
     full = torch.nn.functional.conv1d(x, ones) >= k - 0.5
     opened = torch.nn.functional.conv1d(full.to(x.dtype), ones, padding=k - 1) > 0.5
     return opened.reshape(shadow.shape) & shadow
+
+
+def shadow_run_bins(min_m: float, range_m: torch.Tensor) -> int:
+    """The bins a shadow must run to be ``min_m`` long at the median spacing of the bins'
+    slant ranges ``range_m`` ``(B,)``."""
+    spacing = float(range_m.diff().median().clamp_min(1e-6))
+    return int(math.ceil(float(min_m) / spacing - 1e-6))
 
 
 def depression_angle(
@@ -85,4 +94,10 @@ def occlusion_loss(
     return loss, logs
 
 
-__all__ = ["depression_angle", "extended_shadow", "occluding_angle", "occlusion_loss"]
+__all__ = [
+    "depression_angle",
+    "extended_shadow",
+    "occluding_angle",
+    "occlusion_loss",
+    "shadow_run_bins",
+]

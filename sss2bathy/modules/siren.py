@@ -41,7 +41,12 @@ from pytorch_lightning.callbacks import Callback
 
 from sss2bathy.callbacks import SirenMapExport, SirenMapImages
 from sss2bathy.data.siren_inputs import SirenInputs
-from sss2bathy.losses.shadow import depression_angle, extended_shadow, occlusion_loss
+from sss2bathy.losses.shadow import (
+    depression_angle,
+    extended_shadow,
+    occlusion_loss,
+    shadow_run_bins,
+)
 from sss2bathy.losses.siren import height_loss, total_loss
 from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.direct_fit import MBESCellFit
@@ -169,6 +174,7 @@ class SirenModule(pl.LightningModule):
         self.shadow_min_m = float(
             require_number("shadow_min_m", shadow_min_m, lambda v: v >= 0, "a length >= 0 (m)")
         )
+        self._shadow_min_bins: int | None = None  # shadow_min_m in bins, from the first batch
         if self.w_shadow > 0 and not isinstance(sensor, SensorModel):
             raise ValueError(
                 f"w_shadow: expected 0 without a sidescan sensor model (found sensor "
@@ -288,9 +294,9 @@ class SirenModule(pl.LightningModule):
         use = self.sensor.bin_mask(batch)
         shadow_bins = None
         if with_shadow:
-            spacing = batch["range_m"].diff().median().clamp_min(1e-6)
-            min_bins = int(math.ceil(self.shadow_min_m / float(spacing) - 1e-6))
-            shadow_bins = extended_shadow(batch["mask"] == MASK_SHADOW, min_bins)
+            if self._shadow_min_bins is None:  # the bins' ranges never change: read them once
+                self._shadow_min_bins = shadow_run_bins(self.shadow_min_m, batch["range_m"])
+            shadow_bins = extended_shadow(batch["mask"] == MASK_SHADOW, self._shadow_min_bins)
             use = use | shadow_bins
         if "keep" in batch:  # the bins drawn for this step (data.bin_fraction < 1)
             use = use & batch["keep"]

@@ -6,9 +6,6 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import os
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -26,6 +23,8 @@ from sss2bathy.eval.verdict import kfold_verdict
 from sss2bathy.io.export import cog_layout, write_geotiff
 from sss2bathy.io.stac import check_item
 from sss2bathy.survey import BathyGrid
+from tests.cli.test_map import _common as map_test_common
+from tests.cli.test_map import _run as run_map_module
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
@@ -157,22 +156,10 @@ def test_sss2bathy_map_writes_uncertainty_stac_and_report(tmp_path):
         "verdict.overlap.enabled=false",
         "mosaic.resolution=0.25",
         f"hydra.run.dir={run}",
-        f"paths.data_dir={tmp_path / 'data'}",
-        f"paths.output_dir={tmp_path / 'outputs'}",
-        "scale=tiny",
-        "logger=none",
-        "torch_threads=1",
+        *map_test_common(tmp_path),
         'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
     ]
-    env = dict(os.environ, SSS2BATHY_ROOT=str(ROOT), OMP_NUM_THREADS="1")
-    proc = subprocess.run(
-        [sys.executable, "-m", "sss2bathy.cli.map", *args],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    proc = run_map_module("sss2bathy.cli.map", args, tmp_path, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     for name in ("uncertainty.tif", "item.json", "report.html"):
         assert str(run / name) in proc.stdout, name

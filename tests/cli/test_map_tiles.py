@@ -17,6 +17,7 @@ from sss2bathy.cli.map_blend import blend_tile_runs, read_tile_runs
 from sss2bathy.cli.map_tiles import TILE_JSON, plan_tiles, tile_settings, tile_survey_config
 from sss2bathy.survey import BathyGrid
 from sss2bathy.survey.tiles import footprint_bounds, tile_layout, tile_to_dict
+from tests.cli.test_map import _common as map_test_common
 from tests.cli.test_map import _run as run_module
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -217,11 +218,7 @@ def test_two_tiles_fitted_and_blended_match_the_untiled_coverage(tmp_path, tiny_
         "mosaic.placement=none",
         "stac=false",
         "report=false",
-        f"paths.data_dir={tmp_path / 'data'}",
-        f"paths.output_dir={tmp_path / 'outputs'}",
-        "scale=tiny",
-        "logger=none",
-        "torch_threads=1",
+        *map_test_common(tmp_path),
         'overrides=["callbacks=none","trainer.enable_progress_bar=false"]',
     ]
     tiled = [f"tile.size_m=[{size[0]},{size[1]}]", f"tile.overlap_m={overlap}"]
