@@ -187,7 +187,7 @@ tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF surv
 ##@ Models
 
 .PHONY: pretrain
-pretrain: install ## The pretrained normal CNN on six simulated seabeds with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~75 min on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
+pretrain: install ## The pretrained normal CNN on twelve simulated seabeds (six recipes) with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~75 min on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
 	$(BIN)/sss2bathy-train experiment=pretrain scale=$(SCALE) torch_threads=$${TORCH_THREADS:-1} $(ARGS)
 
 ##@ Benchmarks and tools

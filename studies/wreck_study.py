@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scale", default="demo")
     p.add_argument("--survey", default="synthetic_wrecks")
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--settings", nargs="+", default=["scale", "chosen"])
+    p.add_argument("--settings", nargs="*", default=["scale", "chosen"])
     p.add_argument(
         "--variant", action="append", default=[], metavar="NAME=KEY=V[,KEY=V]",
         help="extra settings to fit, e.g. w30=model.siren.omega0=30",

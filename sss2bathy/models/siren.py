@@ -67,7 +67,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Iterator, Mapping, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import nn
@@ -360,6 +360,8 @@ class Siren(nn.Module):
         ``chunk`` are not part of the state: the rebuilt model has the defaults.
         """
         sd = {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
+        if cls is Siren and "detail_range" in sd:  # a TwoScaleSiren's state
+            return TwoScaleSiren.from_state_dict(sd)
         if "out_layer.weight" not in sd or "omega0_buf" not in sd:
             raise ValueError(
                 f"state: expected SIREN keys under prefix {prefix!r} "
@@ -505,3 +507,98 @@ class Siren(nn.Module):
             f"z_range={tuple(round(z, 3) for z in self.z_range)}, precision={self.precision}, "
             f"chunk={self.chunk}, compile_no_graph={self.compile_no_graph}"
         )
+
+
+class TwoScaleSiren(Siren):
+    """A SIREN ``Phi`` (the *base*, fitted as :class:`Siren`) plus a finer detail SIREN ``D``:
+    ``z = Phi(x, y) + D(x, y)``.
+
+    The base keeps the coarse ``omega0`` that bridges gaps in the data (the altimeter's
+    nadir, held-out blocks); the detail network's ``detail_omega0`` places wavelengths the
+    size of what a sidescan images (a wreck, a boulder field). :meth:`detail_penalty` (the
+    mean squared detail height over points drawn uniformly in the bounds, weighted by the
+    module's ``w_detail``) keeps ``D`` near zero wherever no data asks for relief, so the
+    detail appears where the sidescan sees it and the map elsewhere is the base's. ``D``'s
+    output layer starts at zero: the fit begins from the base alone.
+
+    Args:
+        detail_omega0: ``omega0`` of the detail network.
+        detail_hidden, detail_layers: its width and number of linear layers.
+        detail_range_m: the detail network's output ``[-1, 1]`` maps to ``+-detail_range_m``.
+        **base: :class:`Siren`'s arguments for the base (``precision`` and ``chunk`` apply
+            to both).
+    """
+
+    def __init__(
+        self,
+        detail_omega0: float = 60.0,
+        detail_hidden: int = 64,
+        detail_layers: int = 4,
+        detail_range_m: float = 2.0,
+        **base: Any,
+    ) -> None:
+        super().__init__(**base)
+        if not (math.isfinite(float(detail_range_m)) and float(detail_range_m) > 0):
+            raise ValueError(
+                f"detail_range_m: expected a positive number of metres, found {detail_range_m}"
+            )
+        self.detail = Siren(
+            hidden=detail_hidden,
+            n_layers=detail_layers,
+            omega0=detail_omega0,
+            precision=self.precision,
+            chunk=self.chunk,
+            compile_no_graph=self.compile_no_graph,
+        )
+        with torch.no_grad():
+            self.detail.out_layer.weight.zero_()
+            self.detail.out_layer.bias.zero_()
+        self.register_buffer("detail_range", torch.tensor(float(detail_range_m)))
+        self._frame_detail()
+
+    def _frame_detail(self) -> None:
+        r = float(self.detail_range)
+        self.detail.set_frame(self.bounds, (-r, r))
+
+    @torch.no_grad()
+    def set_frame(self, bounds: Sequence[float], z_range: Sequence[float]) -> None:
+        super().set_frame(bounds, z_range)
+        if hasattr(self, "detail"):  # Siren.__init__ sets the base's frame before D exists
+            self._frame_detail()
+
+    def height(self, xy: torch.Tensor) -> torch.Tensor:
+        return super().height(xy) + self.detail.height(xy)
+
+    forward = height
+
+    def height_and_gradient(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z, g = super().height_and_gradient(xy)
+        dz, dg = self.detail.height_and_gradient(xy)
+        return z + dz, g + dg
+
+    def detail_penalty(self, n_points: int = 4096) -> torch.Tensor:
+        """Mean squared detail height (m^2) at ``n_points`` drawn uniformly in the bounds."""
+        u = torch.rand(int(n_points), 2, device=self.in_offset.device) * 2 - 1
+        return self.detail.height(self.in_offset + u * self.in_scale).square().mean()
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, torch.Tensor], prefix: str = "") -> Siren:
+        """Rebuild base and detail (sizes, ``omega0``, frames, weights) from a state dict."""
+        sd = {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
+        base = Siren.from_state_dict({k: v for k, v in sd.items() if not k.startswith("detail")})
+        detail = Siren.from_state_dict(sd, "detail.")
+        model = cls(
+            detail_omega0=detail.omega0,
+            detail_hidden=detail.hidden,
+            detail_layers=detail.n_layers,
+            detail_range_m=float(sd["detail_range"]),
+            hidden=base.hidden,
+            n_layers=base.n_layers,
+            omega0=base.omega0,
+            encoding=base.encoding,
+        )
+        model.load_state_dict(sd)
+        return model
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, detail_range_m={float(self.detail_range)}"

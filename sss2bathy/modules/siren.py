@@ -53,7 +53,7 @@ from sss2bathy.models.direct_fit import MBESCellFit
 from sss2bathy.models.intersection import FinderSettings
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
-from sss2bathy.models.siren import Siren
+from sss2bathy.models.siren import Siren, TwoScaleSiren
 from sss2bathy.modules.siren_parts import (
     SELECT_BEST,
     BestSnapshot,
@@ -117,6 +117,10 @@ class SirenModule(pl.LightningModule):
             must be seen; 0 = off (the paper). With a sidescan sensor model only.
         shadow_min_m: a shadow counts only where it runs at least this far along range (m;
             a morphological opening of the mask: dark speckle at far range is no shadow).
+        w_detail: weight of a :class:`~sss2bathy.models.siren.TwoScaleSiren`'s detail
+            penalty (its mean squared detail height, m^2, over ``detail_points`` points drawn
+            uniformly in the bounds each step): the detail network rises only where the
+            data ask for it; 0 = off (and required for a one-scale SIREN).
     """
 
     def __init__(
@@ -140,6 +144,8 @@ class SirenModule(pl.LightningModule):
         line_offset_weight: float = 1.0,
         w_shadow: float = 0.0,
         shadow_min_m: float = 0.25,
+        w_detail: float = 0.0,
+        detail_points: int = 4096,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -175,6 +181,18 @@ class SirenModule(pl.LightningModule):
             require_number("shadow_min_m", shadow_min_m, lambda v: v >= 0, "a length >= 0 (m)")
         )
         self._shadow_min_bins: int | None = None  # shadow_min_m in bins, from the first batch
+        self.w_detail = float(
+            require_number("w_detail", w_detail, lambda v: v >= 0, "a weight >= 0 (0 = off)")
+        )
+        self.detail_points = int(
+            require_number("detail_points", detail_points, lambda v: v >= 1, "a count >= 1")
+        )
+        if self.w_detail > 0 and not isinstance(self.siren, TwoScaleSiren):
+            raise ValueError(
+                f"w_detail: expected 0 for a one-scale SIREN (model.siren._target_ "
+                f"{type(self.siren).__name__}; the penalty is on a TwoScaleSiren's detail), "
+                f"found {w_detail}"
+            )
         if self.w_shadow > 0 and not isinstance(sensor, SensorModel):
             raise ValueError(
                 f"w_shadow: expected 0 without a sidescan sensor model (found sensor "
@@ -340,6 +358,10 @@ class SirenModule(pl.LightningModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         out = self.model_step(batch)
+        if self.w_detail > 0:
+            penalty = self.siren.detail_penalty(self.detail_points)
+            out["loss"] = out["loss"] + self.w_detail * penalty
+            out["loss_detail"] = penalty.detach()
         n = int(batch["position"].shape[0])
         self.log("train/loss", out["loss"].detach(), on_step=True, on_epoch=True,
                  prog_bar=True, batch_size=n)  # fmt: skip

@@ -1,4 +1,4 @@
-"""experiment=pretrain: six training seabeds, validation on the validation site, every scored
+"""experiment=pretrain: twelve training seabeds (six recipes, two seabeds each), validation on the validation site, every scored
 survey unseen; the low-pass loss term stays off for the other experiments."""
 
 from pathlib import Path
@@ -20,13 +20,17 @@ def _data(*overrides: str) -> dict:
 
 
 @pytest.mark.parametrize("scale", ["tiny", "demo"])
-def test_pretrain_trains_on_six_unseen_seabeds(scale):
+def test_pretrain_trains_on_twelve_unseen_seabeds(scale):
     c = _data("experiment=pretrain", f"scale={scale}")
     data = c["data"]
     assert c["task"] == "pretrain"
     train = data["train_surveys"]
     names = [s["name"] for s in train]
-    assert names == [f"synthetic_pretrain_{k}_{scale}" for k in "abcdef"]
+    assert names == [f"synthetic_pretrain_{k}_{scale}" for k in "abcdefghijkl"]
+    # every seabed its own seed; g-l repeat a-f's recipes and sonars on other seabeds
+    assert len({s["seed"] for s in train}) == 12
+    for first, second in zip(train[:6], train[6:], strict=True):
+        assert first["sonar"] == second["sonar"] and first["terrain"] == second["terrain"]
     assert all(s["randomize"]["enabled"] for s in train)
     assert [s["name"] for s in data["val_surveys"]] == [f"synthetic_d1_valsite_{scale}"]
     scored = [data["survey"], *data["test_surveys"], *data["val_surveys"]]

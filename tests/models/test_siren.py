@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from sss2bathy.geometry import attitude_to_rotation, head_plane_normal_from_gradient
-from sss2bathy.models.siren import CPU_CHUNK, PRECISIONS, Siren, _SinCos
+from sss2bathy.models.siren import CPU_CHUNK, PRECISIONS, Siren, TwoScaleSiren, _SinCos
 
 BOUNDS = (100.0, -50.0, 300.0, 150.0)
 Z_RANGE = (-25.0, -9.0)
@@ -394,3 +394,51 @@ def test_compiled_no_graph_pass_matches_eager_and_keeps_one_shape():
     assert torch.equal(z_t, z_r) and torch.equal(g_t, g_r) and g_t.requires_grad
     with pytest.raises(ValueError, match="compile_no_graph: expected true or false"):
         Siren(compile_no_graph="yes")
+
+
+# ----------------------------------------------------------------- two scales
+def _two_scale(**kw) -> TwoScaleSiren:
+    torch.manual_seed(3)
+    return TwoScaleSiren(
+        detail_omega0=60.0, hidden=32, n_layers=3, omega0=10.0,
+        bounds=(0.0, 0.0, 100.0, 80.0), z_range=(-20.0, -5.0), **kw,
+    )  # fmt: skip
+
+
+def test_two_scale_starts_as_its_base_and_sums_both_after():
+    m = _two_scale()
+    xy = torch.rand(200, 2) * torch.tensor([100.0, 80.0])
+    base = Siren.height(m, xy)
+    assert torch.equal(m.height(xy), base)  # the detail's output layer starts at zero
+    assert m.detail_penalty().item() == 0.0
+    with torch.no_grad():
+        m.detail.out_layer.weight.normal_(0.0, 0.5)
+    z, g = m.height_and_gradient(xy)
+    torch.testing.assert_close(z, base + m.detail.height(xy))
+    torch.testing.assert_close(z, m.height(xy))
+    xy_g = xy.clone().requires_grad_(True)
+    (auto,) = torch.autograd.grad(m.height(xy_g).sum(), xy_g)
+    torch.testing.assert_close(g, auto, atol=1e-4, rtol=1e-4)
+    assert m.detail_penalty().item() > 0.0
+    # the detail's output maps to +-detail_range_m about zero, over the base's bounds
+    assert m.detail.z_range == (-2.0, 2.0) and m.detail.bounds == m.bounds
+
+
+def test_two_scale_frame_follows_the_base_and_the_state_rebuilds_it():
+    m = _two_scale(detail_range_m=3.0)
+    m.set_frame((10.0, 20.0, 60.0, 90.0), (-30.0, -1.0))
+    assert m.detail.bounds == m.bounds == (10.0, 20.0, 60.0, 90.0)
+    assert m.detail.z_range == (-3.0, 3.0) and m.z_range == (-30.0, -1.0)
+    with torch.no_grad():
+        m.detail.out_layer.weight.normal_()
+    state = {f"siren.{k}": v for k, v in m.state_dict().items()}
+    rebuilt = Siren.from_state_dict(state, prefix="siren.")
+    assert isinstance(rebuilt, TwoScaleSiren)
+    assert (rebuilt.detail.omega0, rebuilt.omega0) == (60.0, 10.0)
+    xy = torch.rand(50, 2) * 40 + torch.tensor([10.0, 30.0])
+    torch.testing.assert_close(rebuilt.height(xy), m.height(xy))
+
+
+def test_two_scale_rejects_a_bad_detail_range():
+    with pytest.raises(ValueError, match="detail_range_m"):
+        _two_scale(detail_range_m=0.0)

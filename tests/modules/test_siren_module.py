@@ -20,11 +20,12 @@ from sss2bathy.losses.siren import height_loss
 from sss2bathy.models.arc_fit import arc_geometry
 from sss2bathy.models.lambertian import LambertianSensorModel
 from sss2bathy.models.normal_sensor import NormalSensorModel
-from sss2bathy.models.siren import Siren
+from sss2bathy.models.siren import Siren, TwoScaleSiren
 from sss2bathy.modules.schedules import WallClockExponentialLR
 from sss2bathy.modules.siren import SirenModule
 
 ROOT = Path(__file__).resolve().parents[2]
+TWO_SCALE = "model.siren._target_=sss2bathy.models.siren.TwoScaleSiren"
 
 
 def _load_tiny_survey_builder():
@@ -164,6 +165,7 @@ def _fit_from_config(cfg):
         ("siren_gt_n2d", ["model.line_offset=true"]),
         ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
         ("siren_gt_n2d", ["model.w_shadow=100"]),
+        ("siren_gt_n2d", [TWO_SCALE, "+model.siren.detail_omega0=40", "model.w_detail=1"]),
         ("siren_gt_n2d", ["siren_schedule=budget", "scale.siren.budget_s=600"]),
     ],
 )
@@ -183,6 +185,11 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
         assert isinstance(sched.scheduler, torch.optim.lr_scheduler.ExponentialLR)
         assert sched.interval == "epoch"
     assert torch.isfinite(metrics["train/loss"])
+    if TWO_SCALE in extra:  # the detail network and its penalty
+        assert isinstance(model.siren, TwoScaleSiren) and model.siren.detail.omega0 == 40.0
+        assert torch.isfinite(metrics["train/loss_detail"])
+    else:
+        assert "train/loss_detail" not in metrics
     if "model.sensor=null" in extra:  # heights only: no sidescan term
         assert "train/loss_sensor" not in metrics
         assert metrics["train/loss"] == pytest.approx(float(metrics["train/loss_height"]))
@@ -246,6 +253,13 @@ def test_line_offsets_only_with_the_normal_sensor():
             line_offset_weight=-1.0,
         )
     SirenModule(Siren(hidden=8, n_layers=3), sensor=lambert)  # off: any sensor
+
+
+def test_the_detail_penalty_needs_a_two_scale_siren():
+    with pytest.raises(ValueError, match="w_detail: expected 0 for a one-scale SIREN"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, w_detail=1.0)
+    with pytest.raises(ValueError, match="w_detail: expected a weight >= 0"):
+        SirenModule(TwoScaleSiren(hidden=8, n_layers=3), sensor=None, w_detail=-1.0)
 
 
 def test_the_occlusion_term_needs_a_sidescan_sensor():
