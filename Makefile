@@ -77,10 +77,11 @@ siren-direct-fit: ## Paper experiment: SIREN fitted to the MBES grid directly
 siren-heights-only: ## Ablation: SIREN from the altimeter heights alone (what the sidescan must beat)
 siren-gt-n2d: ## Paper experiment: SIREN from draped MBES normals + altimeter
 siren-cnn-n2d: ## Paper experiment: SIREN from CNN normals + altimeter (trains a CNN if none)
+siren-cnn-n2d-pretrained: ## SIREN from the shipped pretrained CNN's normals + altimeter (no CNN training)
 siren-lambert-all: ## Paper experiment: Lambertian baseline, all lines of sidescan
 siren-lambert: ## Paper experiment: Lambertian baseline, 12 test lines
-d2: ## Paper experiment: Dataset-II analogue (CNN-N2d and Lambert on synthetic_d2; trains a CNN if none)
-d3: ## Stress site: another sonar (CNN-N2d and Lambert on synthetic_d3; trains a CNN if none)
+d2: ## Paper experiment: Dataset-II analogue (CNN-N2d with the demo's and the shipped CNN, and Lambert on synthetic_d2)
+d3: ## Stress site: another sonar (CNN-N2d with the demo's and the shipped CNN, and Lambert on synthetic_d3)
 
 report: install ## Gather the latest run of each experiment into outputs/report/
 	$(BIN)/sss2bathy-report $(ARGS)
@@ -189,6 +190,18 @@ tile-seams: install ## Tiled vs single SIREN-Lambert map of a generated XTF surv
 .PHONY: pretrain
 pretrain: install ## The pretrained normal CNN on twelve simulated seabeds (six recipes) with randomised sonars -> outputs/runs/pretrain/ (SCALE=demo ~75 min on 2 CPU cores; SCALE=paper ARGS=trainer=gpu)
 	$(BIN)/sss2bathy-train experiment=pretrain scale=$(SCALE) torch_threads=$${TORCH_THREADS:-1} $(ARGS)
+
+# the shipped model's recipe (docs/pretrained_model.md): 32 lines on each of the twelve
+# seabeds, width 16 x 6 blocks, 17-epoch lr schedule stopped after 7573 steps (the shipped run
+# was stopped there by a 4-min limit on an H200); the best validation epoch is the model
+PRETRAIN_GPU := scale=demo scale.survey.synthetic_pretrain.plan.n_train=32 trainer=gpu \
+	trainer.precision=bf16-mixed model.channels_last=true data.num_workers=10 data.pin_memory=true \
+	scale.pretrain.base_width=16 scale.pretrain.n_blocks=6 scale.pretrain.batch_size=32 \
+	scale.pretrain.lr=5.0e-4 scale.pretrain.overlap=0.75 scale.pretrain.overlap_bins=0.5 \
+	scale.pretrain.max_epochs=17 scale.pretrain.max_steps=7573 test=false 'data.test_surveys=[]'
+.PHONY: pretrain-gpu
+pretrain-gpu: install ## The shipped pretrained CNN's recipe on a GPU (prepares the twelve seabeds first, once; ~4 min of training on an H200) -> outputs/runs/pretrain/
+	$(BIN)/sss2bathy-train experiment=pretrain $(PRETRAIN_GPU) $(ARGS)
 
 ##@ Benchmarks and tools
 

@@ -105,6 +105,7 @@ def test_a_cnn_is_trained_first_only_when_none_of_this_scale_exists(tmp_path):
         *prepare,
         "cnn",
         "d3_siren_cnn_n2d",
+        "d3_siren_cnn_n2d_pretrained",
         "d3_siren_lambert",
     ]
     _cnn_run(tmp_path, "tiny")  # a run of another scale does not count
@@ -115,6 +116,7 @@ def test_a_cnn_is_trained_first_only_when_none_of_this_scale_exists(tmp_path):
     assert _names(["scale=demo", "make=d3"], outputs) == [
         "prepare_d3",
         "d3_siren_cnn_n2d",
+        "d3_siren_cnn_n2d_pretrained",
         "d3_siren_lambert",
     ]
     assert _names(["scale=demo", "needs=[cnn]"], outputs) == []
