@@ -14,8 +14,9 @@ every map against the true grid: each object's height above its surroundings
 (:func:`sss2bathy.sim.terrain.object_relief`, the same number on the true grid is the
 truth), its error, the fraction of objects *visible* (fitted >= half the true height) and
 the map's MAE. Writes ``<out>/wreck_study.md`` and ``.csv``; a finished run (its
-``metrics.json``) is reused. No CNN checkpoint is assumed: SIREN-GT-N2d (the true normals)
-is the upper bound of SIREN-CNN-N2d here.
+``metrics.json``) is reused. SIREN-CNN-N2d uses the CNN shipped in the package
+(``siren_cnn_n2d_pretrained``; its training seabeds include hulls and boxes, none of this
+survey's); SIREN-GT-N2d (the true normals) is its upper bound.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from studies.tables import markdown_table, to_csv, write_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-METHODS = ("siren_lambert", "siren_gt_n2d", "siren_heights_only")
+METHODS = ("siren_lambert", "siren_cnn_n2d_pretrained", "siren_gt_n2d", "siren_heights_only")
 
 
 def run(args: list[str], log: Path) -> None:
@@ -142,8 +143,8 @@ def main(argv: list[str] | None = None) -> None:
         f"# Wreck study: {args.survey} at scale={args.scale}",
         "",
         f"Objects ({heights}); height = top (90th percentile over the footprint) minus the "
-        "median 2-6 m around it; visible = fitted >= 50 % of true. SIREN-GT-N2d (true "
-        "normals) stands in for SIREN-CNN-N2d (no CNN checkpoint).",
+        "median 2-6 m around it; visible = fitted >= 50 % of true. SIREN-CNN-N2d: the "
+        "shipped CNN (siren_cnn_n2d_pretrained); SIREN-GT-N2d (true normals): its bound.",
         "",
         f"Command: `.venv/bin/python -m studies.wreck_study {' '.join(argv or sys.argv[1:])}`",
         "",
