@@ -49,7 +49,9 @@ def main(argv: list[str] | None = None) -> None:
 
     def load(run_dir: str) -> tuple[np.ndarray, dict]:
         d = np.load(Path(run_dir) / "map.npz")
-        return np.where(d["region"], d["heights"], np.nan).astype(np.float64), d
+        # the cells map.tif holds (imaged or altimeter cells); older runs: the fitted region
+        shown = d["coverage"] if "coverage" in d.files else d["region"]
+        return np.where(shown, d["heights"], np.nan).astype(np.float64), d
 
     def shaded(z: np.ndarray) -> np.ndarray:
         filled = np.where(np.isfinite(z), z, np.nanmedian(z))
