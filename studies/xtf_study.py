@@ -458,15 +458,18 @@ def verdict_row(
     }
 
 
-def verdict_to_markdown(rows: Sequence[Mapping[str, Any]], title: str = "Verdict study") -> str:
-    """Markdown of the verdict study rows and the agreement count."""
+def verdict_to_markdown(
+    rows: Sequence[Mapping[str, Any]], title: str = "Verdict study", method: str = "siren_lambert"
+) -> str:
+    """Markdown of the verdict study rows (the sidescan fits by ``method``) and the agreement
+    count."""
     agree = verdict_agreement(rows)
     folds = sorted({int(r["folds"]) for r in rows}) or [0]
     md = [
         f"# {title}",
         "",
         "Generated overlapping AUV-like XTF surveys (synthetic_d1, one per seed, no MBES "
-        "given to the fit). `sss2bathy-map method=siren_lambert verdict.folds="
+        f"given to the fit). `sss2bathy-map method={method} verdict.folds="
         f"{'/'.join(map(str, folds))}` gives the K-fold verdict and the sidescan map; "
         "`method=siren_heights_only verdict.folds=0` the heights-only map. verdict = the "
         "sidescan fit against heights-only / interpolation on held-out altimeter blocks: "
@@ -965,7 +968,8 @@ def run_verdict_study(
         log.info("%s", row)
         rows.append(row)
         out.mkdir(parents=True, exist_ok=True)
-        write_tables(out, "verdict_study", verdict_to_markdown(rows), verdict_to_csv(rows))
+        md = verdict_to_markdown(rows, method=method)
+        write_tables(out, "verdict_study", md, verdict_to_csv(rows))
     return rows
 
 
