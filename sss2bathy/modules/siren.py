@@ -121,6 +121,12 @@ class SirenModule(pl.LightningModule):
             penalty (its mean squared detail height, m^2, over ``detail_points`` points drawn
             uniformly in the bounds each step): the detail network rises only where the
             data ask for it; 0 = off (and required for a one-scale SIREN).
+        shadow_on_detail: with a ``TwoScaleSiren``, the occlusion term moves the detail
+            network only (the base's height enters it detached), so what a shadow asks for
+            is relief, not a tilt of the whole map.
+        heights_on_base: with a ``TwoScaleSiren``, the altimeter heights move the base only
+            (the detail's height enters their loss detached): the detail cannot bend to fit
+            the altimeter's points, which it would not carry across a gap.
     """
 
     def __init__(
@@ -146,6 +152,8 @@ class SirenModule(pl.LightningModule):
         shadow_min_m: float = 0.25,
         w_detail: float = 0.0,
         detail_points: int = 4096,
+        shadow_on_detail: bool = False,
+        heights_on_base: bool = False,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -187,6 +195,24 @@ class SirenModule(pl.LightningModule):
         self.detail_points = int(
             require_number("detail_points", detail_points, lambda v: v >= 1, "a count >= 1")
         )
+        if not isinstance(shadow_on_detail, bool):
+            raise ValueError(
+                f"shadow_on_detail: expected true or false, found {shadow_on_detail!r}"
+            )
+        if shadow_on_detail and not isinstance(self.siren, TwoScaleSiren):
+            raise ValueError(
+                "shadow_on_detail: expected false for a one-scale SIREN (it moves a "
+                f"TwoScaleSiren's detail network only), found {shadow_on_detail}"
+            )
+        self.shadow_on_detail = shadow_on_detail
+        if not isinstance(heights_on_base, bool):
+            raise ValueError(f"heights_on_base: expected true or false, found {heights_on_base!r}")
+        if heights_on_base and not isinstance(self.siren, TwoScaleSiren):
+            raise ValueError(
+                "heights_on_base: expected false for a one-scale SIREN (the altimeter then "
+                f"fits a TwoScaleSiren's base only), found {heights_on_base}"
+            )
+        self.heights_on_base = heights_on_base
         if self.w_detail > 0 and not isinstance(self.siren, TwoScaleSiren):
             raise ValueError(
                 f"w_detail: expected 0 for a one-scale SIREN (model.siren._target_ "
@@ -325,7 +351,12 @@ class SirenModule(pl.LightningModule):
     def model_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Loss terms and statistics of one batch (module docstring)."""
         alt = batch["altimeter"]
-        loss_height = height_loss(self.siren.height(alt[:, :2]), alt[:, 2])
+        if self.heights_on_base:  # the altimeter fits the base; the detail enters detached
+            xy = alt[:, :2]
+            z = Siren.height(self.siren, xy) + self.siren.detail.height(xy).detach()
+        else:
+            z = self.siren.height(alt[:, :2])
+        loss_height = height_loss(z, alt[:, 2])
         if isinstance(self.sensor, MBESCellFit):
             loss, logs = self.sensor.loss(self.siren)
             return {"loss": loss, **logs, "loss_height": loss_height.detach()}
@@ -338,7 +369,11 @@ class SirenModule(pl.LightningModule):
         loss = total_loss(loss_sensor, loss_height, self.w_height)
         out = {}
         if shadow is not None:
-            angle = depression_angle(every.points, every.height, every.sonar)
+            height = every.height
+            if self.shadow_on_detail:  # the base's height enters detached: the detail moves
+                base = Siren.height(self.siren, every.points[:, :2])
+                height = height - base + base.detach()
+            angle = depression_angle(every.points, height, every.sonar)
             shape = (int(batch["mask"].shape[0]), 2, int(batch["mask"].shape[-1]))
             loss_shadow, shadow_logs = occlusion_loss(
                 angle, every.ping, every.side, every.bin, shadow, shape

@@ -166,6 +166,15 @@ def _fit_from_config(cfg):
         ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
         ("siren_gt_n2d", ["model.w_shadow=100"]),
         ("siren_gt_n2d", [TWO_SCALE, "+model.siren.detail_omega0=40", "model.w_detail=1"]),
+        (
+            "siren_gt_n2d",
+            [
+                TWO_SCALE,
+                "model.w_shadow=100",
+                "model.shadow_on_detail=true",
+                "model.heights_on_base=true",
+            ],
+        ),
         ("siren_gt_n2d", ["siren_schedule=budget", "scale.siren.budget_s=600"]),
     ],
 )
@@ -185,9 +194,13 @@ def test_one_training_step_through_hydra(tmp_path, tiny_survey, experiment, extr
         assert isinstance(sched.scheduler, torch.optim.lr_scheduler.ExponentialLR)
         assert sched.interval == "epoch"
     assert torch.isfinite(metrics["train/loss"])
-    if TWO_SCALE in extra:  # the detail network and its penalty
+    if TWO_SCALE in extra and "model.w_detail=1" in extra:  # the detail and its penalty
         assert isinstance(model.siren, TwoScaleSiren) and model.siren.detail.omega0 == 40.0
         assert torch.isfinite(metrics["train/loss_detail"])
+    elif TWO_SCALE in extra:  # the occlusion term on the detail network alone
+        assert isinstance(model.siren, TwoScaleSiren) and model.shadow_on_detail
+        assert model.heights_on_base
+        assert "train/loss_detail" not in metrics
     else:
         assert "train/loss_detail" not in metrics
     if "model.sensor=null" in extra:  # heights only: no sidescan term
@@ -260,6 +273,26 @@ def test_the_detail_penalty_needs_a_two_scale_siren():
         SirenModule(Siren(hidden=8, n_layers=3), sensor=None, w_detail=1.0)
     with pytest.raises(ValueError, match="w_detail: expected a weight >= 0"):
         SirenModule(TwoScaleSiren(hidden=8, n_layers=3), sensor=None, w_detail=-1.0)
+    with pytest.raises(ValueError, match="shadow_on_detail: expected false for a one-scale"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, shadow_on_detail=True)
+    with pytest.raises(ValueError, match="heights_on_base: expected false for a one-scale"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, heights_on_base=True)
+
+
+def test_heights_on_base_leaves_the_detail_to_the_sidescan():
+    """The altimeter's loss reaches the base's parameters, never the detail's."""
+    siren = TwoScaleSiren(hidden=16, n_layers=3, bounds=(0, 0, 10, 10), z_range=(-5, 0))
+    with torch.no_grad():
+        siren.detail.out_layer.weight.normal_()
+    module = SirenModule(siren, sensor=None, heights_on_base=True)
+    alt = torch.tensor([[2.0, 3.0, -1.0], [7.0, 4.0, -2.5], [5.0, 8.0, -4.0]])
+    n = alt.shape[0]
+    batch = {"altimeter": alt, "position": torch.zeros(n, 3)}
+    module.model_step(batch)["loss"].backward()
+    assert all(p.grad is None or not p.grad.any() for p in siren.detail.parameters())
+    assert any(
+        p.grad is not None and p.grad.abs().sum() > 0 for p in siren.sine_layers.parameters()
+    )
 
 
 def test_the_occlusion_term_needs_a_sidescan_sensor():
