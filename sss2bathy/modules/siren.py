@@ -82,6 +82,15 @@ def _positive_or_none(name: str, value: float | None) -> float | None:
     return None if value is None else float(value)
 
 
+def _two_scale_switch(name: str, value: Any, siren: Siren, what: str) -> bool:
+    """``value`` checked as a switch that only a :class:`TwoScaleSiren` may turn on."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: expected true or false, found {value!r}")
+    if value and not isinstance(siren, TwoScaleSiren):
+        raise ValueError(f"{name}: expected false for a one-scale SIREN ({what}), found {value}")
+    return value
+
+
 class SirenModule(pl.LightningModule):
     """Fits a :class:`~sss2bathy.models.siren.Siren` to sidescan + altimeter data.
 
@@ -195,24 +204,14 @@ class SirenModule(pl.LightningModule):
         self.detail_points = int(
             require_number("detail_points", detail_points, lambda v: v >= 1, "a count >= 1")
         )
-        if not isinstance(shadow_on_detail, bool):
-            raise ValueError(
-                f"shadow_on_detail: expected true or false, found {shadow_on_detail!r}"
-            )
-        if shadow_on_detail and not isinstance(self.siren, TwoScaleSiren):
-            raise ValueError(
-                "shadow_on_detail: expected false for a one-scale SIREN (it moves a "
-                f"TwoScaleSiren's detail network only), found {shadow_on_detail}"
-            )
-        self.shadow_on_detail = shadow_on_detail
-        if not isinstance(heights_on_base, bool):
-            raise ValueError(f"heights_on_base: expected true or false, found {heights_on_base!r}")
-        if heights_on_base and not isinstance(self.siren, TwoScaleSiren):
-            raise ValueError(
-                "heights_on_base: expected false for a one-scale SIREN (the altimeter then "
-                f"fits a TwoScaleSiren's base only), found {heights_on_base}"
-            )
-        self.heights_on_base = heights_on_base
+        self.shadow_on_detail = _two_scale_switch(
+            "shadow_on_detail", shadow_on_detail, self.siren,
+            "it moves a TwoScaleSiren's detail network only",
+        )  # fmt: skip
+        self.heights_on_base = _two_scale_switch(
+            "heights_on_base", heights_on_base, self.siren,
+            "the altimeter then fits a TwoScaleSiren's base only",
+        )  # fmt: skip
         if self.w_detail > 0 and not isinstance(self.siren, TwoScaleSiren):
             raise ValueError(
                 f"w_detail: expected 0 for a one-scale SIREN (model.siren._target_ "
