@@ -112,3 +112,26 @@ def test_pooled_errors(surveys, tmp_path):
         dm.setup("fit")
     with pytest.raises(ValueError, match="at least one"):
         union_envelopes([])
+
+
+def test_surveys_prepared_side_by_side_as_one_after_another(tmp_path):
+    """prepare_jobs > 1 drapes each survey in its own (spawned) process: the same windows."""
+    sets = {"main": (2, 64, 25.0), "a": (2, 64, 25.0), "b": (3, 128, 30.0)}
+    batches = []
+    for jobs in (1, 3):
+        root = tmp_path / f"jobs{jobs}"
+        surveys = {k: _survey(root, k, *v) for k, v in sets.items()}
+        dm = SidescanWindowDataModule(
+            survey=surveys["main"], data_dir=str(root), window_pings=16, window_bins=64,
+            batch_size=4, train_surveys=[surveys["a"], surveys["b"]], seed=3,
+            prepare_jobs=jobs,
+        )  # fmt: skip
+        dm.prepare_data()
+        # the drapes are cached in every survey's folder before setup reads them
+        assert all(any((Path(s["path"]) / "draped").glob("*")) for s in surveys.values())
+        dm.setup("fit")
+        batches.append(dm.train_set[0]["inputs"].numpy())
+    np.testing.assert_array_equal(*batches)
+    with pytest.raises(ValueError, match="prepare_jobs"):
+        SidescanWindowDataModule(survey={"kind": "folder", "path": "x"},
+                                 data_dir=str(tmp_path), prepare_jobs=0)  # fmt: skip
