@@ -136,6 +136,9 @@ class SirenModule(pl.LightningModule):
         heights_on_base: with a ``TwoScaleSiren``, the altimeter heights move the base only
             (the detail's height enters their loss detached): the detail cannot bend to fit
             the altimeter's points, which it would not carry across a gap.
+        detail_nadir: with ``w_detail``, the penalty adds the detail's mean square under the
+            batch's pings (their nadir, which no sidescan bin images), so the depths along
+            the track, the altimeter's, are the base's alone.
     """
 
     def __init__(
@@ -163,6 +166,7 @@ class SirenModule(pl.LightningModule):
         detail_points: int = 4096,
         shadow_on_detail: bool = False,
         heights_on_base: bool = False,
+        detail_nadir: bool = False,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(
@@ -211,6 +215,10 @@ class SirenModule(pl.LightningModule):
         self.heights_on_base = _two_scale_switch(
             "heights_on_base", heights_on_base, self.siren,
             "the altimeter then fits a TwoScaleSiren's base only",
+        )  # fmt: skip
+        self.detail_nadir = _two_scale_switch(
+            "detail_nadir", detail_nadir, self.siren,
+            "the detail penalty then also holds the detail at zero under each ping",
         )  # fmt: skip
         if self.w_detail > 0 and not isinstance(self.siren, TwoScaleSiren):
             raise ValueError(
@@ -394,6 +402,10 @@ class SirenModule(pl.LightningModule):
         out = self.model_step(batch)
         if self.w_detail > 0:
             penalty = self.siren.detail_penalty(self.detail_points)
+            if self.detail_nadir:  # under each ping: the nadir gap, which no bin images
+                penalty = (
+                    penalty + self.siren.detail.height(batch["position"][:, :2]).square().mean()
+                )
             out["loss"] = out["loss"] + self.w_detail * penalty
             out["loss_detail"] = penalty.detach()
         n = int(batch["position"].shape[0])

@@ -165,7 +165,15 @@ def _fit_from_config(cfg):
         ("siren_gt_n2d", ["model.line_offset=true"]),
         ("siren_gt_n2d", ["data.bin_fraction=0.25"]),
         ("siren_gt_n2d", ["model.w_shadow=100"]),
-        ("siren_gt_n2d", [TWO_SCALE, "+model.siren.detail_omega0=40", "model.w_detail=1"]),
+        (
+            "siren_gt_n2d",
+            [
+                TWO_SCALE,
+                "+model.siren.detail_omega0=40",
+                "model.w_detail=1",
+                "model.detail_nadir=true",
+            ],
+        ),
         (
             "siren_gt_n2d",
             [
@@ -277,6 +285,8 @@ def test_the_detail_penalty_needs_a_two_scale_siren():
         SirenModule(Siren(hidden=8, n_layers=3), sensor=None, shadow_on_detail=True)
     with pytest.raises(ValueError, match="heights_on_base: expected false for a one-scale"):
         SirenModule(Siren(hidden=8, n_layers=3), sensor=None, heights_on_base=True)
+    with pytest.raises(ValueError, match="detail_nadir: expected false for a one-scale"):
+        SirenModule(Siren(hidden=8, n_layers=3), sensor=None, detail_nadir=True)
 
 
 def test_heights_on_base_leaves_the_detail_to_the_sidescan():
