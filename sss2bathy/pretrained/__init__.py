@@ -88,9 +88,9 @@ def resolved_config(path: Path) -> dict[str, Any]:
             return {k: walk(v, f"{key}.{k}" if key else str(k)) for k, v in node.items()}
         if isinstance(node, list):
             return [walk(v, f"{key}[{i}]") for i, v in enumerate(node)]
-        if isinstance(node, str) and "${hydra:" in node:
-            # the run's own folders: machine-local, and resolvable only inside a Hydra run
-            # (or wherever one left its global state), so always kept as written
+        if isinstance(node, str) and ("${hydra:" in node or "${paths." in node):
+            # the run's own folders: machine-local (and ${hydra:...} resolvable only inside
+            # a Hydra run, or wherever one left its global state), so always kept as written
             return node
         if isinstance(node, str) and "${" in node:
             try:
@@ -160,7 +160,7 @@ def training_record(ckpt_path: Path, ckpt: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def run_metrics(ckpt_path: Path, extra: Sequence[str | Path] = ()) -> dict[str, Any]:
-    """``{"values": {key: number}, "sources": [files]}``: the validation and test scores of
+    """``{"values": {key: number}, "sources": [file names]}``: the validation and test scores of
     the checkpoint's run (``<run>/metrics.json``) and of each file of ``extra`` (flat
     metrics JSON; later files win)."""
     files = []
@@ -178,7 +178,8 @@ def run_metrics(ckpt_path: Path, extra: Sequence[str | Path] = ()) -> dict[str, 
     for path in files:
         data = final_scalars(_read_json(path, "a flat metrics file"))
         values.update({k: v for k, v in data.items() if k.startswith(METRIC_PREFIXES)})
-    return {"values": values, "sources": [str(p) for p in files]}
+    # file names only: where they lay is machine-local
+    return {"values": values, "sources": [p.name for p in files]}
 
 
 def software_record() -> dict[str, str]:

@@ -88,7 +88,10 @@ def fit_tiny_cnn(tmp: Path, survey_dir: Path, run: Path, seed: int = 0) -> Path:
         "task_name": "cnn",
         "seed": 42,
         "scale": {"name": "tiny", "cnn": {"max_epochs": 1}},
-        "trainer": {"max_epochs": "${scale.cnn.max_epochs}"},
+        "trainer": {
+            "max_epochs": "${scale.cnn.max_epochs}",
+            "default_root_dir": "${paths.output_dir}",
+        },
         "callbacks": {"dir": "${hydra:runtime.output_dir}"},
         "paths": {"output_dir": "/somewhere/local"},
     }

@@ -59,6 +59,9 @@ def test_export_records_what_inference_and_the_card_need(tiny_run, exported):
     assert training["config"]["trainer"]["max_epochs"] == 1  # interpolation resolved
     assert training["config"]["callbacks"]["dir"] == "${hydra:runtime.output_dir}"  # kept
     assert "paths" not in training["config"]
+    # a folder of the machine is never resolved into the record
+    assert training["config"]["trainer"]["default_root_dir"] == "${paths.output_dir}"
+    assert all("/" not in name for name in meta["metrics"]["sources"])
     assert training["loss"]["kind"] and training["optimizer"]["lr"] == 1e-3
     # validation and test scores only, finite only
     assert meta["metrics"]["values"] == {
