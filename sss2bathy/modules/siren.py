@@ -378,8 +378,9 @@ class SirenModule(pl.LightningModule):
         if shadow is not None:
             height = every.height
             if self.shadow_on_detail:  # the base's height enters detached: the detail moves
-                base = Siren.height(self.siren, every.points[:, :2])
-                height = height - base + base.detach()
+                # (one pass of the small detail network, not of the base)
+                detail = self.siren.detail.height(every.points[:, :2])
+                height = (height - detail).detach() + detail
             angle = depression_angle(every.points, height, every.sonar)
             shape = (int(batch["mask"].shape[0]), 2, int(batch["mask"].shape[-1]))
             loss_shadow, shadow_logs = occlusion_loss(
