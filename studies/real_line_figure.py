@@ -8,6 +8,9 @@ survey (``data/xtf_<name>``). Three panels on the map's grid: the flat-seabed si
 mosaic (:func:`sss2bathy.eval.mosaic.build_mosaic`, shadows kept), the map's heights over
 its hillshade, and the hillshade alone (with ``--before``, a fourth: another run's
 hillshade, e.g. the same line with the scale's own settings); the maps' relief in the titles.
+``--wreck X0 X1 Y0 Y1`` (m, local): a feature's box; its top (90th percentile of the map's
+heights inside) above its surroundings (the median 2-6 m outside the box) is printed and
+put in the titles (the Iver2 line's wreck: 6 22 50 72).
 """
 
 from __future__ import annotations
@@ -27,6 +30,32 @@ def hillshade(z: np.ndarray, cell: float, azimuth_deg: float = 315.0, alt_deg: f
     return np.clip(shade, 0, 1)
 
 
+def box_relief(
+    z: np.ndarray,
+    x0: float,
+    y0: float,
+    cell: float,
+    box: tuple[float, float, float, float],
+    ring_m: tuple[float, float] = (2.0, 6.0),
+    top_quantile: float = 0.9,
+) -> float:
+    """How high what lies in ``box`` (x0, x1, y0, y1; m) stands above its surroundings on a
+    height grid ``z`` (cell ``[0, 0]`` centred at ``(x0, y0)``; NaN unmapped): the
+    ``top_quantile`` of the heights inside minus the median of those ``ring_m`` (inner,
+    outer) metres outside the box; NaN where either is unmapped."""
+    ny, nx = z.shape
+    x = x0 + cell * np.arange(nx)
+    y = y0 + cell * np.arange(ny)
+    dx = np.maximum(np.maximum(box[0] - x, x - box[1]), 0.0)[None, :]
+    dy = np.maximum(np.maximum(box[2] - y, y - box[3]), 0.0)[:, None]
+    dist = np.hypot(dx, dy)  # from the box (0 inside)
+    inside = z[(dist == 0) & np.isfinite(z)]
+    ring = z[(dist >= ring_m[0]) & (dist <= ring_m[1]) & np.isfinite(z)]
+    if inside.size == 0 or ring.size == 0:
+        return float("nan")
+    return float(np.quantile(inside, top_quantile) - np.median(ring))
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run_dir")
@@ -37,6 +66,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--before-label", default="before")
     p.add_argument("--label", default="map")
     p.add_argument("--zoom", nargs=4, type=float, metavar=("X0", "X1", "Y0", "Y1"))
+    p.add_argument("--wreck", nargs=4, type=float, metavar=("X0", "X1", "Y0", "Y1"))
     args = p.parse_args(argv)
 
     import matplotlib
@@ -86,14 +116,24 @@ def main(argv: list[str] | None = None) -> None:
     fig.colorbar(im, ax=axs[1], shrink=0.8, label="height z (m)")
     axs[1].set_title(f"{args.label} (relief {zhi - zlo:.1f} m, 0.5-99.5 %)")
     axs[2].imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
-    axs[2].set_title(f"{args.label}: hillshade")
+    top = ""
+    if args.wreck:
+        rise = box_relief(z, x0, y0, cell, tuple(args.wreck))
+        print(f"{args.label}: the box's top {rise:.2f} m above its surroundings")
+        top = f", wreck top +{rise:.1f} m"
+    axs[2].set_title(f"{args.label}: hillshade{top}")
     if args.before is not None:
         zb, db = load(args.before)
         if zb.shape != z.shape or float(db["cell_size"]) != cell:
             raise SystemExit(f"--before: expected a map on the same grid, found {zb.shape}")
         blo, bhi = np.nanpercentile(zb, [0.5, 99.5])
         axs[3].imshow(shaded(zb), origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
-        axs[3].set_title(f"{args.before_label}: hillshade (relief {bhi - blo:.1f} m)")
+        top = ""
+        if args.wreck:
+            rise = box_relief(zb, float(db["x0"]), float(db["y0"]), cell, tuple(args.wreck))
+            print(f"{args.before_label}: the box's top {rise:.2f} m above its surroundings")
+            top = f", wreck top +{rise:.1f} m"
+        axs[3].set_title(f"{args.before_label}: hillshade (relief {bhi - blo:.1f} m{top})")
     for ax in axs:
         for line in survey.lines:
             ax.plot(line.position[:, 0], line.position[:, 1], "r-", lw=0.6)

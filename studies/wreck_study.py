@@ -8,7 +8,8 @@ Generates ``data/survey=synthetic_wrecks`` (five hulls and boxes 1-4 m high besi
 tracks of an AUV sidescan, ``conf/data/survey/synthetic_wrecks.yaml``), fits each method with
 the scale's own settings (``scale``) and with those the map route chooses for the survey's
 scale (``chosen``: :func:`sss2bathy.cli.map_settings.apply_map_settings`, the finer SIREN
-and, for the sidescan methods, the occlusion term), plus any
+and, for the sidescan methods, the occlusion term; ``detail``: ``map_settings=detail``, the
+scale's SIREN plus a detail network), plus any
 ``--variant``, one ``sss2bathy-train`` process at a time (one torch thread), and scores
 every map against the true grid: each object's height above its surroundings
 (:func:`sss2bathy.sim.terrain.object_relief`, the same number on the true grid is the
@@ -45,10 +46,11 @@ def run(args: list[str], log: Path) -> None:
         raise SystemExit(f"{' '.join(args[:3])} ... failed (exit {done.returncode}); see {log}")
 
 
-def chosen_overrides(survey_folder: Path, base: list[str]) -> list[str]:
-    """The map route's settings for this survey, as ``train`` overrides."""
+def chosen_overrides(survey_folder: Path, base: list[str], mode: str = "survey") -> list[str]:
+    """The map route's settings (``map_settings=mode``) for this survey, as ``train``
+    overrides (``+key=value`` for a key the composed config lacks)."""
     from hydra import compose, initialize_config_dir
-    from omegaconf import open_dict
+    from omegaconf import OmegaConf, open_dict
 
     from sss2bathy.cli.map_settings import apply_map_settings, survey_scale
     from sss2bathy.survey import Survey
@@ -58,9 +60,14 @@ def chosen_overrides(survey_folder: Path, base: list[str]) -> list[str]:
     scale = survey_scale([ln.position for ln in lines], [ln.range_m for ln in lines])
     with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose("train", overrides=base)
+    before = cfg.copy()
     with open_dict(cfg):
-        applied = apply_map_settings(cfg, scale, [])
-    return [f"{k}={v}" for k, v in applied.items()]
+        applied = apply_map_settings(cfg, scale, [], mode=mode)
+    absent = object()
+    return [
+        f"{'+' if OmegaConf.select(before, k, default=absent) is absent else ''}{k}={v}"
+        for k, v in applied.items()
+    ]
 
 
 def score(run_dir: Path, truth: np.ndarray, cell: float, objects: list) -> dict:
@@ -86,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scale", default="demo")
     p.add_argument("--survey", default="synthetic_wrecks")
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--settings", nargs="*", default=["scale", "chosen"])
+    p.add_argument("--settings", nargs="*", default=["scale", "chosen", "detail"])
     p.add_argument(
         "--variant", action="append", default=[], metavar="NAME=KEY=V[,KEY=V]",
         help="extra settings to fit, e.g. w30=model.siren.omega0=30",
@@ -109,23 +116,28 @@ def main(argv: list[str] | None = None) -> None:
     truth = read_geotiff(folder / "grid.tif", manifest["origin"])
     base = [f"data/survey={args.survey}", f"scale={args.scale}", "logger=none",
             "callbacks=none", "torch_threads=1", f"paths.data_dir={data_dir}"]  # fmt: skip
-    settings: dict[str, list[str]] = {}
+    modes = {"chosen": "survey", "detail": "detail"}  # the map route's map_settings
     for name in args.settings:
-        if name == "scale":
-            settings[name] = []
-        elif name == "chosen":
-            settings[name] = chosen_overrides(folder, [*base, "experiment=siren_lambert"])
-        else:
-            raise SystemExit(f"--settings: expected scale or chosen, found {name!r}")
+        if name != "scale" and name not in modes:
+            raise SystemExit(f"--settings: expected scale, chosen or detail, found {name!r}")
+    variants: dict[str, list[str]] = {}
     for item in args.variant:
         name, _, spec = item.partition("=")
         if not name or not spec:
             raise SystemExit(f"--variant: expected NAME=KEY=VALUE[,KEY=VALUE], found {item!r}")
-        settings[name] = spec.split(",")
+        variants[name] = spec.split(",")
+
+    def overrides_of(label: str, method: str) -> list[str]:
+        if label in variants:
+            return variants[label]
+        if label in modes:  # per method: heights only gets no occlusion term, no detail
+            return chosen_overrides(folder, [*base, f"experiment={method}"], modes[label])
+        return []
 
     rows = []
-    for label, overrides in settings.items():
+    for label in [*args.settings, *variants]:
         for method in args.methods:
+            overrides = overrides_of(label, method)
             run_dir = out / "runs" / f"{method}_{label}_{args.scale}"
             if not (run_dir / "metrics.json").is_file():
                 print(

@@ -35,6 +35,7 @@ from sss2bathy.cli._common import (
     log_config,
     setup_environment,
 )
+from sss2bathy.cli.map_settings import MODES as MAP_SETTINGS
 from sss2bathy.cli.map_tiles import (
     is_tile_job,
     register_resolver,
@@ -89,7 +90,8 @@ HELP = CliHelp(
         ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
         (
             "map_settings=NAME",
-            "scale (default: smooth) | survey (finer detail from the sonar's range; objects rise)",
+            "scale (default: smooth) | survey (finer, from the sonar's range; objects rise) | "
+            "detail (the scale's SIREN plus a finer detail network)",
         ),
         ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
         (
@@ -198,13 +200,12 @@ def log_cnn_choice(cfg: Mapping[str, Any]) -> None:
         )
 
 
-MAP_SETTINGS = ("scale", "survey")
-
-
 def map_settings_choice(cfg: Mapping[str, Any]) -> str:
-    """``map_settings``: ``scale`` (the scale preset's SIREN settings) or ``survey`` (omega0
-    and steps from the survey's sonar range and extent, with the occlusion term,
-    :mod:`sss2bathy.cli.map_settings`)."""
+    """``map_settings``: ``scale`` (the scale preset's SIREN settings), ``survey`` (omega0
+    and steps from the survey's sonar range and extent, with the occlusion term) or
+    ``detail`` (the scale's SIREN plus a detail network at the survey's omega0),
+    :mod:`sss2bathy.cli.map_settings`."""
+
     choice = cfg.get("map_settings") or "scale"
     if choice not in MAP_SETTINGS:
         raise ValueError(
@@ -263,13 +264,15 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         train_cfg.paths.output_dir = str(cfg.paths.output_dir)
         train_cfg.model.output_dir = str(run_dir)
         train_cfg.run_name = "map"
-        # map_settings=survey: the SIREN's omega0 / steps from the survey's range and extent
-        # (cli/map_settings.py), except what the user set in overrides; scale: the scale's own
-        if map_settings_choice(cfg) == "survey":
+        # map_settings=survey / detail: the SIREN's omega0 / steps (detail: a detail
+        # network's) from the survey's range and extent (cli/map_settings.py), except what
+        # the user set in overrides; scale: the scale's own
+        mode = map_settings_choice(cfg)
+        if mode != "scale":
             from sss2bathy.cli.map_settings import apply_map_settings, scale_of_xtf_files
 
             user = [str(o) for o in cfg.get("overrides") or []]
-            apply_map_settings(train_cfg, scale_of_xtf_files(survey), user)
+            apply_map_settings(train_cfg, scale_of_xtf_files(survey), user, mode=mode)
         # a tile job (tile.index): the pings of its tile, a survey folder cut from the import
         tile_survey = tile_survey_config(cfg, survey)
         if tile_survey is not None:

@@ -51,6 +51,13 @@ WAVELENGTH_PER_RANGE = 0.5
 MAX_OMEGA0 = 200.0
 #: the occlusion term's weight with a finer SIREN (``model.w_shadow``; studies/wreck_study.py)
 SURVEY_W_SHADOW = 1.0e4
+#: ``map_settings=detail``: the weight of the detail network's mean square height
+#: (``model.w_detail``, m^-2; studies/wreck_study.py: 10 kept the scale's map error, 30 cost
+#: object height)
+DETAIL_W = 10.0
+#: the settings a map can be fitted with (``map_settings``): the scale preset's own, the
+#: finer one-scale SIREN, or the scale's SIREN plus a detail network at the finer omega0
+MODES = ("scale", "survey", "detail")
 
 
 @dataclass(frozen=True)
@@ -117,20 +124,38 @@ class MapSettings:
         steps_per_epoch: batches per epoch (``data.steps_per_epoch``); None: the scale's.
         wavelength_m: the first layer's finest ground wavelength ``lambda_0`` it gives (m).
         w_shadow: the occlusion term's weight (``model.w_shadow``; 0: off, the scale's).
+        detail: the finer ``omega0`` goes to a detail network beside the scale's SIREN
+            (:class:`~sss2bathy.models.siren.TwoScaleSiren`: ``model.siren.detail_omega0``,
+            the base keeps the scale's ``omega0``), held near zero wherever the sidescan does
+            not ask for relief and under the pings (``model.w_detail``,
+            ``model.detail_nadir``); the altimeter moves the base only
+            (``model.heights_on_base``), the occlusion term the detail only
+            (``model.shadow_on_detail``).
     """
 
     omega0: float
     steps_per_epoch: int | None
     wavelength_m: float
     w_shadow: float = 0.0
+    detail: bool = False
 
     def overrides(self) -> dict[str, Any]:
         """The ``train`` config keys and values these settings stand for."""
-        out: dict[str, Any] = {"model.siren.omega0": round(self.omega0, 3)}
+        out: dict[str, Any] = {}
+        if self.detail:
+            out["model.siren._target_"] = "sss2bathy.models.siren.TwoScaleSiren"
+            out["model.siren.detail_omega0"] = round(self.omega0, 3)
+        else:
+            out["model.siren.omega0"] = round(self.omega0, 3)
         if self.steps_per_epoch is not None:
             out["data.steps_per_epoch"] = int(self.steps_per_epoch)
         if self.w_shadow > 0:
             out["model.w_shadow"] = float(self.w_shadow)
+        if self.detail:
+            out.update({"model.w_detail": DETAIL_W, "model.detail_nadir": True,
+                        "model.heights_on_base": True})  # fmt: skip
+            if self.w_shadow > 0:
+                out["model.shadow_on_detail"] = True
         return out
 
 
@@ -141,6 +166,7 @@ def choose_map_settings(
     fast_steps_per_epoch: int | None,
     batch_pings: int,
     wavelength_per_range: float = WAVELENGTH_PER_RANGE,
+    detail: bool = False,
 ) -> MapSettings:
     """The SIREN's settings for a survey of ``scale`` (module docstring).
 
@@ -150,6 +176,9 @@ def choose_map_settings(
     ``siren_schedule=fast`` count; None: no minimum); otherwise the scale's steps stand.
     ``base_steps_per_epoch`` None means every ping once per epoch (``batch_pings`` each).
     A finer SIREN than the scale's also gets the occlusion term (:data:`SURVEY_W_SHADOW`).
+    ``detail``: that finer ``omega0`` is a detail network's beside the scale's SIREN
+    (:attr:`MapSettings.detail`) with the scale's steps; where it is no finer than the
+    scale's there is no detail.
     """
     if not (math.isfinite(base_omega0) and base_omega0 > 0):
         raise ValueError(f"base_omega0: expected a positive number, found {base_omega0!r}")
@@ -163,12 +192,17 @@ def choose_map_settings(
     omega0 = 4 * math.pi * max(scale.half_extent_m) / wavelength
     omega0 = min(max(omega0, float(base_omega0)), MAX_OMEGA0)
     steps = None
-    if omega0 > base_omega0 and fast_steps_per_epoch is not None:
+    # a finer one-scale SIREN needs the steps; the detail network settles within the
+    # scale's (more steps there cost the base its held-out altimeter error: 0.118 -> 0.191 m)
+    if omega0 > base_omega0 and fast_steps_per_epoch is not None and not detail:
         current = base_steps_per_epoch or math.ceil(scale.n_pings / int(batch_pings))
         if current < fast_steps_per_epoch:
             steps = int(fast_steps_per_epoch)
     finest = 4 * math.pi * max(scale.half_extent_m) / omega0
-    return MapSettings(omega0, steps, finest, SURVEY_W_SHADOW if omega0 > base_omega0 else 0.0)
+    finer = omega0 > base_omega0
+    return MapSettings(
+        omega0, steps, finest, SURVEY_W_SHADOW if finer else 0.0, detail=bool(detail) and finer
+    )
 
 
 #: the sensor models the occlusion term applies to (model.sensor._target_)
@@ -180,15 +214,43 @@ SIDESCAN_SENSORS = (
 SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
 
 
+#: scales already measured in this process, by files (path, size, mtime) and settings: the
+#: K-fold verdict composes a config per fold fit
+_SCALES: dict[str, SurveyScale] = {}
+
+
 def scale_of_xtf_files(survey: Mapping[str, Any]) -> SurveyScale:
     """The :class:`SurveyScale` of a map config's XTF files (``survey``: the
-    ``data/survey=xtf`` keys): navigation and bin ranges only, nothing is imported."""
-    from sss2bathy.io.xtf import read_xtf
+    ``data/survey=xtf`` keys): navigation and bin ranges only, nothing is imported (the
+    reader's warnings are the import's to give: not repeated here). Measured once per
+    process for the same files and settings."""
+    import json
+
     from sss2bathy.io.xtf_survey import resolve_files
+
+    paths = resolve_files(survey["files"])
+    keys = ("n_bins", "crs", "channel_pair", "port_far_first", "missing_attitude", *SENSOR_KEYS)
+    key = json.dumps(
+        [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in paths]
+        + [str(survey.get(k)) for k in keys]
+    )
+    if key not in _SCALES:
+        io_log = logging.getLogger("sss2bathy.io")
+        level = io_log.level
+        io_log.setLevel(logging.ERROR)
+        try:
+            _SCALES[key] = _measure_xtf_scale(paths, survey)
+        finally:
+            io_log.setLevel(level)
+    return _SCALES[key]
+
+
+def _measure_xtf_scale(paths: Sequence[Any], survey: Mapping[str, Any]) -> SurveyScale:
+    from sss2bathy.io.xtf import read_xtf
 
     positions, ranges = [], []
     origin = None
-    for path in resolve_files(survey["files"]):
+    for path in paths:
         line, stats = read_xtf(
             path,
             survey.get("n_bins"),
@@ -221,14 +283,33 @@ def _user_keys(overrides: Sequence[str]) -> set[str]:
     return keys
 
 
-def apply_map_settings(train_cfg: Any, scale: SurveyScale, user_overrides: Sequence[str]) -> dict:
+def apply_map_settings(
+    train_cfg: Any, scale: SurveyScale, user_overrides: Sequence[str], mode: str = "survey"
+) -> dict:
     """Write :func:`choose_map_settings` for ``scale`` into the composed ``train_cfg`` (in
     place, an open OmegaConf config), except the keys in ``user_overrides`` (``key=value``
     strings; ``scale.siren.omega0`` / ``scale.siren.steps_per_epoch`` count as the model's
     and the data's); returns what was set. The base values are the composed config's own
-    (its scale's; a ``siren_schedule`` already at the fast step count keeps its steps)."""
+    (its scale's; a ``siren_schedule`` already at the fast step count keeps its steps).
+
+    ``mode`` (:data:`MODES`): ``scale`` sets nothing; ``survey`` the finer one-scale SIREN,
+    with the occlusion term for a sidescan sensor model unless the user chose ``omega0``;
+    ``detail`` the scale's SIREN plus a detail network at the finer ``omega0``
+    (:attr:`MapSettings.detail`) for a sidescan sensor model, unless the user chose
+    ``model.siren._target_``; without a sidescan (heights only) the detail would see no
+    data, so that fit keeps the scale's settings.
+    """
     from omegaconf import OmegaConf
 
+    if mode not in MODES:
+        raise ValueError(f"map_settings: expected one of {', '.join(MODES)}, found {mode!r}")
+    user = _user_keys(user_overrides)
+    # the occlusion term and the detail network need a sidescan sensor model
+    sensor = OmegaConf.select(train_cfg, "model.sensor._target_", default=None)
+    sidescan = sensor in SIDESCAN_SENSORS
+    detail = mode == "detail" and sidescan and "model.siren._target_" not in user
+    if mode == "scale" or (mode == "detail" and not detail):
+        return {}
     siren = train_cfg.scale.siren
     settings = choose_map_settings(
         scale,
@@ -236,22 +317,21 @@ def apply_map_settings(train_cfg: Any, scale: SurveyScale, user_overrides: Seque
         base_steps_per_epoch=train_cfg.data.get("steps_per_epoch"),
         fast_steps_per_epoch=siren.get("fast_steps_per_epoch"),
         batch_pings=int(train_cfg.data.batch_pings),
+        detail=detail,
     )
-    user = _user_keys(user_overrides)
-    # the occlusion term needs a sidescan sensor model (not heights only, not a grid fit)
-    sensor = OmegaConf.select(train_cfg, "model.sensor._target_", default=None)
-    sidescan = sensor in SIDESCAN_SENSORS
-    # the occlusion term goes with the finer SIREN: not where the user chose omega0
-    shadow = sidescan and "model.siren.omega0" not in user
+    # the occlusion term goes with the finer SIREN: not where the user chose a one-scale
+    # SIREN's omega0 (a detail network's omega0 is the map route's either way)
+    shadow = sidescan and (detail or "model.siren.omega0" not in user)
     applied = {}
     for key, value in settings.overrides().items():
         if key in user or (key == "model.w_shadow" and not shadow):
             continue
-        OmegaConf.update(train_cfg, key, value, merge=False)
+        OmegaConf.update(train_cfg, key, value, merge=False, force_add=True)
         applied[key] = value
     log.info(
-        "map settings for a %.0f m range, %.3f m bins, %.0f m of track (half-extent %.0f m): "
-        "%s (finest first-layer wavelength %.1f m)",
+        "map settings (%s) for a %.0f m range, %.3f m bins, %.0f m of track (half-extent "
+        "%.0f m): %s (finest first-layer wavelength %.1f m)",
+        mode,
         scale.range_m,
         scale.bin_m,
         scale.track_m,

@@ -175,8 +175,10 @@ def test_map_settings_choice_is_checked():
     assert map_settings_choice(cfg) == "scale"  # the scale preset's settings by default
     cfg.map_settings = "survey"
     assert map_settings_choice(cfg) == "survey"
+    cfg.map_settings = "detail"
+    assert map_settings_choice(cfg) == "detail"
     cfg.map_settings = "surevy"
-    with pytest.raises(ValueError, match="map_settings: expected one of scale, survey"):
+    with pytest.raises(ValueError, match="map_settings: expected one of scale, survey, detail"):
         check_map_config(cfg)
 
 

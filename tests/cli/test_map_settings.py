@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 
 from sss2bathy.cli.map_settings import (
+    DETAIL_W,
     MAX_OMEGA0,
     SURVEY_W_SHADOW,
     SurveyScale,
@@ -109,6 +110,60 @@ def test_apply_leaves_what_the_user_set():
     assert "model.siren.omega0" not in applied and OmegaConf.select(cfg, "model.siren.omega0") == 9
 
 
+def test_detail_puts_the_finer_omega0_in_a_detail_network_beside_the_scales():
+    s = choose_map_settings(scale(), 10.0, None, 80, 16, detail=True)
+    one = choose_map_settings(scale(), 10.0, None, 80, 16)
+    # the scale's steps (more cost the base its held-out altimeter error)
+    assert s.detail and s.omega0 == one.omega0 and s.steps_per_epoch is None
+    assert s.overrides() == {
+        "model.siren._target_": "sss2bathy.models.siren.TwoScaleSiren",
+        "model.siren.detail_omega0": round(one.omega0, 3),  # the base keeps the scale's
+        "model.w_shadow": SURVEY_W_SHADOW,
+        "model.w_detail": DETAIL_W,
+        "model.detail_nadir": True,
+        "model.heights_on_base": True,
+        "model.shadow_on_detail": True,
+    }
+    # no finer than the scale's: no detail network, the scale's own settings
+    coarse = choose_map_settings(scale(range_m=300.0, half=(300.0, 300.0)), 30.0, None, 80, 16,
+                                 detail=True)  # fmt: skip
+    assert not coarse.detail and coarse.overrides() == {"model.siren.omega0": 30.0}
+
+
+def test_apply_detail_builds_a_two_scale_siren_for_sidescan_fits_only():
+    import hydra
+
+    from sss2bathy.models.siren import TwoScaleSiren
+
+    cfg = _map_train_cfg()
+    with open_dict(cfg):
+        applied = apply_map_settings(cfg, scale(pings=320), [], mode="detail")
+    assert cfg.model.siren.omega0 == cfg.scale.siren.omega0  # the base: the scale's
+    assert applied["model.siren.detail_omega0"] > cfg.model.siren.omega0
+    assert cfg.model.w_detail == DETAIL_W and cfg.model.detail_nadir and cfg.model.heights_on_base
+    model = hydra.utils.instantiate(cfg.model)
+    assert isinstance(model.siren, TwoScaleSiren)
+    assert model.siren.detail.omega0 == pytest.approx(applied["model.siren.detail_omega0"])
+    # heights only: a detail network would see no data; the verdict's baseline stays the scale's
+    cfg = _map_train_cfg(experiment="siren_heights_only")
+    with open_dict(cfg):
+        assert apply_map_settings(cfg, scale(pings=320), [], mode="detail") == {}
+    assert "Siren" in cfg.model.siren._target_ and "detail_omega0" not in cfg.model.siren
+    # the user's own SIREN class wins; the user's omega0 is the base's, the detail still comes
+    cfg = _map_train_cfg("model.siren._target_=sss2bathy.models.siren.Siren")
+    with open_dict(cfg):
+        user = ["model.siren._target_=sss2bathy.models.siren.Siren"]
+        assert apply_map_settings(cfg, scale(pings=320), user, mode="detail") == {}
+    cfg = _map_train_cfg("model.siren.omega0=7")
+    with open_dict(cfg):
+        applied = apply_map_settings(cfg, scale(pings=320), ["model.siren.omega0=7"], "detail")
+    assert cfg.model.siren.omega0 == 7 and applied["model.w_shadow"] == SURVEY_W_SHADOW
+    # the scale's settings set nothing; an unknown mode is refused with the map's key
+    assert apply_map_settings(_map_train_cfg(), scale(), [], mode="scale") == {}
+    with pytest.raises(ValueError, match="map_settings: expected one of scale, survey, detail"):
+        apply_map_settings(_map_train_cfg(), scale(), [], mode="fine")
+
+
 @pytest.mark.skipif(
     not REAL_LINE.is_file(), reason=f"{REAL_LINE} absent (set SSS2BATHY_REALDATA=FOLDER)"
 )
@@ -122,3 +177,43 @@ def test_the_real_iver2_line():
     assert 40.0 < s.track_m < 80.0 and s.n_pings == 460
     chosen = choose_map_settings(s, 10.0, None, 80, 16)
     assert 30.0 < chosen.omega0 < 80.0 and chosen.steps_per_epoch == 80
+
+
+def test_the_scale_of_xtf_files_is_measured_once_and_leaves_the_warnings_to_the_import(
+    tmp_path, caplog
+):
+    import importlib.util
+    import logging
+
+    from sss2bathy.cli import map_settings
+    from sss2bathy.io.xtf import write_xtf
+
+    spec = importlib.util.spec_from_file_location("io_fixtures", ROOT / "tests/io/conftest.py")
+    fixtures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fixtures)
+    path = tmp_path / "L0.xtf"
+    write_xtf(fixtures.synthetic_line(n_pings=30, n_bins=64), path, fixtures.ORIGIN)
+    # 64 samples read as 32 bins: the reader warns (the import's WARNING, not this check's)
+    survey = {"files": str(path), "n_bins": 32, "tilt_deg": 30.0, "beam_width_deg": 60.0}
+    calls = []
+    measure = map_settings._measure_xtf_scale
+
+    def counted(*args):
+        calls.append(args)
+        return measure(*args)
+
+    map_settings._SCALES.clear()
+    try:
+        map_settings._measure_xtf_scale = counted
+        with caplog.at_level(logging.INFO):
+            first = scale_of_xtf_files(survey)
+            again = scale_of_xtf_files(dict(survey))  # a fold fit's config: the same files
+    finally:
+        map_settings._measure_xtf_scale = measure
+    assert first == again and len(calls) == 1 and first.n_pings == 30
+    assert first.range_m == pytest.approx(40.0, rel=0.05)
+    assert not [r for r in caplog.records if r.name.startswith("sss2bathy.io")]
+    assert logging.getLogger("sss2bathy.io").level == logging.NOTSET  # restored
+    # other settings are another measurement
+    scale_of_xtf_files({**survey, "n_bins": 64})
+    assert len(map_settings._SCALES) == 2
