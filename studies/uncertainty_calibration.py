@@ -11,7 +11,8 @@ verdict study's, ``python -m studies.xtf_study --verdict-folds 5``) are reused.
    changes how far apart the fold fits land): the factor ``c`` that puts 68.3 % of their
    pooled written cells inside ``+-c sigma_J``
    (:func:`sss2bathy.eval.uncertainty.calibrate_scale`) — conf/map.yaml's
-   ``uncertainty.calibrated.<scale>``.
+   ``uncertainty.calibrated.<map_settings>.<scale>`` (``--map-settings``: the runs' map
+   settings, whose fold maps differ in spread).
 2. **Evaluate** ``c sigma_J`` on every survey (the ``--evaluate`` ones were not used for
    ``c``): the share of cells whose true height lies within +-1 sigma / +-2 sigma (ideal
    68.3 % / 95.4 %), Spearman's correlation of sigma with |error|, and each survey's own
@@ -102,17 +103,39 @@ def errors_on_truth(
     return (pred - truth.heights)[ok], sigma[ok]
 
 
-def survey_errors(scale: str, seed: int, study_dir: Path, folds: int) -> SurveyErrors:
+def run_map_settings(run_dir: Path) -> str:
+    """The ``map_settings`` a finished ``sss2bathy-map`` run was made with (its
+    ``.hydra/config.yaml``; ``scale`` where the key is absent: runs from before it)."""
+    import yaml
+
+    path = Path(run_dir) / ".hydra" / "config.yaml"
+    if not path.is_file():
+        raise SystemExit(f"{path}: expected the map run's config, found none")
+    return str((yaml.safe_load(path.read_text()) or {}).get("map_settings") or "scale")
+
+
+def survey_errors(
+    scale: str, seed: int, study_dir: Path, folds: int, map_settings: str = "scale"
+) -> SurveyErrors:
     """Generate (or reuse) the survey of ``scale`` / ``seed`` and its ``sss2bathy-map``
-    run with ``verdict.folds=folds`` under ``study_dir``; its errors and sigma."""
+    run with ``verdict.folds=folds`` and ``map_settings`` under ``study_dir``; its errors
+    and sigma. A finished run made with other map settings is refused, not reused."""
     study_dir = Path(study_dir).resolve()
     survey = make_survey(study_dir / "xtf" / f"s{seed}", seed, scale=scale)
     data_dir = study_dir / "data"
     run_dir = study_dir / "runs" / f"s{seed}" / f"{METHOD}_folds{folds}"
-    if not ((run_dir / "metrics.json").is_file() and (run_dir / "verdict.json").is_file()):
+    if (run_dir / "metrics.json").is_file() and (run_dir / "verdict.json").is_file():
+        found = run_map_settings(run_dir)
+        if found != map_settings:
+            raise SystemExit(
+                f"{run_dir}: expected a run with map_settings={map_settings}, found "
+                f"map_settings={found} (--study-dir names another study's folder)"
+            )
+    else:
         cmd = map_command(
-            survey, METHOD, "demo", seed, run_dir, data_dir, scale, verdict_folds=folds
-        )
+            survey, METHOD, "demo", seed, run_dir, data_dir, scale, verdict_folds=folds,
+            map_args=[f"map_settings={map_settings}"],
+        )  # fmt: skip
         print(f"{scale} seed {seed}: {shlex.join(cmd)}", flush=True)
         run_map(cmd, run_dir)
     truth, (easting, northing) = truth_grid(survey)
@@ -189,7 +212,14 @@ def study_rows(
     return c, rows
 
 
+def calibration_table_name(map_settings: str) -> str:
+    """The table's file stem: ``uncertainty_calibration`` for the scale's map settings,
+    ``uncertainty_calibration_<map_settings>`` for others."""
+    return "uncertainty_calibration" + ("" if map_settings == "scale" else f"_{map_settings}")
+
+
 COLUMNS = (
+    "map_settings",
     "set",
     "scale",
     "seed",
@@ -208,7 +238,12 @@ COLUMNS = (
 )
 
 
-def to_markdown(c: Mapping[str, float], rows: Sequence[Mapping[str, Any]], command: str) -> str:
+def to_markdown(
+    c: Mapping[str, float],
+    rows: Sequence[Mapping[str, Any]],
+    command: str,
+    map_settings: str = "scale",
+) -> str:
     """The study's page: what was measured, ``c``, the table and the command."""
     pct = lambda v: f"{100 * v:.0f} %"  # noqa: E731
     table = markdown_table(
@@ -249,10 +284,11 @@ def to_markdown(c: Mapping[str, float], rows: Sequence[Mapping[str, Any]], comma
     )
     return "\n".join(
         [
-            "# Uncertainty calibration",
+            f"# Uncertainty calibration (map_settings={map_settings})",
             "",
             "Generated AUV XTF surveys (synthetic_d1's recipe flown as an AUV, one seabed per "
-            f"seed) mapped by `sss2bathy-map method={METHOD} verdict.folds=K`; sigma = c x "
+            f"seed) mapped by `sss2bathy-map method={METHOD} verdict.folds=K "
+            f"map_settings={map_settings}`; sigma = c x "
             "the delete-a-fold jackknife of the K fold maps "
             "(`sss2bathy.eval.uncertainty`), scored against the simulated MBES on the "
             "cells map.tif holds. c is fitted per scale preset on that scale's calibration "
@@ -262,7 +298,7 @@ def to_markdown(c: Mapping[str, float], rows: Sequence[Mapping[str, Any]], comma
             "(K fold fits of the method and of heights-only, then the final fit): the "
             "uncertainty itself adds no fit.",
             "",
-            "**c** (conf/map.yaml `uncertainty.calibrated`): "
+            f"**c** (conf/map.yaml `uncertainty.calibrated.{map_settings}`): "
             + ", ".join(f"{k} {v:.2f}" for k, v in c.items()),
             "",
             *table,
@@ -306,6 +342,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         + ", ".join(f"{k}={v}" for k, v in STUDY_DIRS.items())
         + ")",
     )
+    p.add_argument(
+        "--map-settings",
+        default="scale",
+        help="the map runs' map_settings (its factors: uncertainty.calibrated.<map-settings>)",
+    )
     p.add_argument("--out", default="docs/studies", help="folder of the table (md + csv)")
     args = p.parse_args(argv)
     dirs = dict(STUDY_DIRS)
@@ -324,17 +365,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         for scale, seed in specs:
             if scale not in dirs:
                 raise SystemExit(f"--study-dir: expected a folder for scale {scale!r}, found none")
-            out.append(survey_errors(scale, seed, Path(dirs[scale]), args.folds))
+            out.append(survey_errors(scale, seed, Path(dirs[scale]), args.folds, args.map_settings))
         return out
 
     c, rows = study_rows(load(cal), load(ev))
     command = "python -m studies.uncertainty_calibration " + shlex.join(
         list(argv) if argv is not None else sys.argv[1:]
     )
+    rows = [{**r, "map_settings": args.map_settings} for r in rows]
     paths = write_tables(
         args.out,
-        "uncertainty_calibration",
-        to_markdown(c, rows, command),
+        calibration_table_name(args.map_settings),
+        to_markdown(c, rows, command, args.map_settings),
         to_csv(rows, COLUMNS),
     )
     print(f"c = {', '.join(f'{k} {v:.3f}' for k, v in c.items())}; table: {paths['md']}")

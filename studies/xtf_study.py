@@ -626,6 +626,10 @@ def make_survey(
     return survey_
 
 
+#: the map settings of the study's runs (``--map-args map_settings=NAME`` for others)
+STUDY_SETTINGS = "map_settings=scale"
+
+
 def map_command(
     survey: StudySurvey,
     method: str,
@@ -665,6 +669,9 @@ def map_command(
         f"hydra.run.dir={run_dir}",
         f"verdict.folds={int(verdict_folds)}",
         *VARIANTS[variant],
+        # the study's tables are of the scale preset's SIREN settings unless map_args say
+        # otherwise (e.g. map_settings=detail, the map route's default)
+        *([] if any(str(a).startswith("map_settings=") for a in map_args) else [STUDY_SETTINGS]),
         *map_args,
         "overrides=[" + ",".join(f"'{o}'" for o in overrides) + "]",
     ]

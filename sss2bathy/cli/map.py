@@ -90,8 +90,8 @@ HELP = CliHelp(
         ("scale=NAME", "tiny | demo (default) | paper: the fit's size"),
         (
             "map_settings=NAME",
-            "scale (default: smooth) | survey (finer, from the sonar's range; objects rise) | "
-            "detail (the scale's SIREN plus a finer detail network)",
+            "detail (default: a smooth SIREN + a detail network for what the sidescan "
+            "sees) | scale (smooth) | survey",
         ),
         ("holdout.fraction=F", "altimeter points held out for the score (0.2; 0 = off)"),
         (
@@ -739,16 +739,23 @@ OPTIONAL_OUTPUTS = {
 
 def uncertainty_scale(cfg: Mapping[str, Any], preset: str | None = None) -> float | None:
     """``uncertainty``: None when off (``enabled: false``), else its factor: ``scale`` when
-    set, else ``calibrated[preset]`` (the scale preset's calibration), else 1 (the raw
-    jackknife) with a WARNING. Without ``preset`` only the values are checked."""
+    set, else ``calibrated[<map_settings>][preset]`` (the calibration for the run's map
+    settings and scale preset: the fold maps of another SIREN spread differently), else 1
+    (the raw jackknife) with a WARNING. Without ``preset`` only the values are checked."""
     node = cfg.get("uncertainty") or {}
     if not node.get("enabled", False):
         return None
     calibrated = node.get("calibrated") or {}
-    for key, value in [
-        ("scale", node.get("scale")),
-        *((f"calibrated.{k}", v) for k, v in calibrated.items()),
-    ]:
+    values = [("scale", node.get("scale"))]
+    for settings, factors in calibrated.items():
+        if settings not in MAP_SETTINGS or not isinstance(factors, Mapping | DictConfig):
+            raise ValueError(
+                f"uncertainty.calibrated.{settings}: expected factors per scale preset under "
+                f"one of the map settings {', '.join(MAP_SETTINGS)}, found "
+                f"{settings}: {factors!r}"
+            )
+        values += [(f"calibrated.{settings}.{k}", v) for k, v in factors.items()]
+    for key, value in values:
         if value is None and key == "scale":
             continue
         if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
@@ -760,13 +767,17 @@ def uncertainty_scale(cfg: Mapping[str, Any], preset: str | None = None) -> floa
         return float(node["scale"])
     if preset is None:
         return math.nan
-    if preset in calibrated:
-        return float(calibrated[preset])
+    settings = map_settings_choice(cfg)
+    factors = calibrated.get(settings) or {}
+    if preset in factors:
+        return float(factors[preset])
     log.warning(
-        "uncertainty.calibrated has no factor for scale=%s (calibrated: %s): uncertainty.tif "
-        "holds the raw jackknife (scale 1), too narrow an error bar; set uncertainty.scale",
+        "uncertainty.calibrated has no factor for map_settings=%s, scale=%s (calibrated: "
+        "%s): uncertainty.tif holds the raw jackknife (scale 1), too narrow an error bar; "
+        "set uncertainty.scale",
+        settings,
         preset,
-        ", ".join(str(k) for k in calibrated) or "none",
+        ", ".join(f"{m}.{k}" for m, f in calibrated.items() for k in f) or "none",
     )
     return 1.0
 

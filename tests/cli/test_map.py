@@ -172,7 +172,10 @@ def test_a_mosaic_that_cannot_be_made_is_a_warning_not_a_failed_map(tmp_path, mo
 
 def test_map_settings_choice_is_checked():
     cfg = OmegaConf.load(CONF / "map.yaml")
-    assert map_settings_choice(cfg) == "scale"  # the scale preset's settings by default
+    # by default the scale preset's SIREN plus a detail network at the survey's omega0
+    assert map_settings_choice(cfg) == "detail"
+    cfg.map_settings = "scale"
+    assert map_settings_choice(cfg) == "scale"
     cfg.map_settings = "survey"
     assert map_settings_choice(cfg) == "survey"
     cfg.map_settings = "detail"

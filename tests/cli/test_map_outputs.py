@@ -38,7 +38,12 @@ def _map_cfg(**node):
             "cnn_checkpoint": None,
             "verdict": {"folds": 3},
             "mosaic": {"placement": "none"},
-            "uncertainty": {"enabled": True, "scale": None, "calibrated": {"demo": 4.97}, **node},
+            "uncertainty": {
+                "enabled": True,
+                "scale": None,
+                "calibrated": {"scale": {"demo": 4.97}, "detail": {"demo": 5.5}},
+                **node,
+            },
             "stac": True,
             "report": False,
         }
@@ -51,10 +56,21 @@ def test_the_uncertainty_factor_is_the_scale_presets_calibration_or_the_users(ca
     assert uncertainty_scale(_map_cfg(enabled=False), "demo") is None
     with caplog.at_level(logging.WARNING, logger="sss2bathy.map"):
         assert uncertainty_scale(_map_cfg(), "paper") == 1.0
-    assert "no factor for scale=paper" in caplog.text and "raw jackknife" in caplog.text
+    assert "no factor for map_settings=scale, scale=paper" in caplog.text
+    assert "raw jackknife" in caplog.text
+    # the factor of the run's map settings: their fold maps spread differently
+    detail = _map_cfg()
+    detail.map_settings = "detail"
+    assert uncertainty_scale(detail, "demo") == 5.5
+    detail.map_settings = "survey"
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="sss2bathy.map"):
+        assert uncertainty_scale(detail, "demo") == 1.0
+    assert "no factor for map_settings=survey, scale=demo" in caplog.text
     for node, key in (
         ({"scale": 0}, "uncertainty.scale"),
-        ({"calibrated": {"tiny": -1}}, "calibrated.tiny"),
+        ({"calibrated": {"scale": {"tiny": -1}}}, "calibrated.scale.tiny"),
+        ({"calibrated": {"demo": 4.97}}, "calibrated.demo: expected factors per scale preset"),
     ):
         with pytest.raises(ValueError, match=key):
             uncertainty_scale(_map_cfg(**node), "demo")
@@ -64,9 +80,12 @@ def test_conf_map_turns_the_outputs_on_with_the_studys_factors():
     """conf/map.yaml's calibrated factors are the calibration study's (its CSV)."""
     cfg = OmegaConf.load(CONF / "map.yaml")
     assert cfg.uncertainty.enabled and cfg.uncertainty.scale is None and cfg.stac and cfg.report
-    rows = list(csv.DictReader((ROOT / "docs/studies/uncertainty_calibration.csv").open()))
-    study = {r["scale"]: round(float(r["c"]), 2) for r in rows}
-    assert dict(cfg.uncertainty.calibrated) == study
+    study: dict = {}
+    for path in sorted((ROOT / "docs/studies").glob("uncertainty_calibration*.csv")):
+        for r in csv.DictReader(path.open()):
+            study.setdefault(r["map_settings"], {})[r["scale"]] = round(float(r["c"]), 2)
+    assert set(study) == {"scale", "detail"}  # the map settings calibrated
+    assert OmegaConf.to_container(cfg.uncertainty.calibrated) == study
     check_map_config(OmegaConf.merge(_map_cfg(), {"uncertainty": cfg.uncertainty}))
 
 

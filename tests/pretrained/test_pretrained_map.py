@@ -45,6 +45,7 @@ def _map_cfg(tmp_path: Path):
             f"files={tmp_path / 'lines'}",
             "method=siren_cnn_n2d",
             "scale=tiny",
+            "map_settings=scale",  # the other settings read the files' navigation: none here
             f"paths.output_dir={tmp_path / 'out'}",
             f"paths.data_dir={tmp_path / 'data'}",
         ],

@@ -14,9 +14,11 @@ from sss2bathy.eval.uncertainty import GAUSS_1SIGMA, coverage
 from sss2bathy.survey.grid import BathyGrid
 from studies.uncertainty_calibration import (
     SurveyErrors,
+    calibration_table_name,
     errors_on_truth,
     main,
     parse_specs,
+    run_map_settings,
     study_rows,
     survey_errors,
     to_markdown,
@@ -57,6 +59,21 @@ def test_the_factor_comes_from_each_scales_calibration_surveys_only():
     page = to_markdown(c, rows, "python -m studies.uncertainty_calibration --calibrate demo:2,3")
     assert "demo 5.0" in page or "demo 4.9" in page
     assert page.count("| evaluation |") == 2 and "--calibrate demo:2,3" in page
+
+
+def test_a_runs_map_settings_name_its_table_and_older_runs_count_as_the_scales(tmp_path):
+    (tmp_path / "new" / ".hydra").mkdir(parents=True)
+    (tmp_path / "new" / ".hydra" / "config.yaml").write_text("method: x\nmap_settings: detail\n")
+    (tmp_path / "old" / ".hydra").mkdir(parents=True)
+    (tmp_path / "old" / ".hydra" / "config.yaml").write_text("method: x\n")
+    assert run_map_settings(tmp_path / "new") == "detail"
+    assert run_map_settings(tmp_path / "old") == "scale"
+    with pytest.raises(SystemExit, match="expected the map run's config"):
+        run_map_settings(tmp_path / "none")
+    assert calibration_table_name("scale") == "uncertainty_calibration"
+    assert calibration_table_name("detail") == "uncertainty_calibration_detail"
+    page = to_markdown({"demo": 5.0}, [], "cmd", "detail")
+    assert "map_settings=detail" in page and "uncertainty.calibrated.detail" in page
 
 
 def test_test_seabeds_are_refused_for_calibration():

@@ -172,6 +172,11 @@ def test_map_command_variants(tmp_path):
     assert "'model.eval_every_n_epochs=1'" in over
     demo = map_command(survey, "siren_lambert", "demo", 1, tmp_path / "r", tmp_path / "d")
     assert not any(c.startswith("siren_schedule=") for c in demo)
+    # the study's tables are of the scale's SIREN settings unless the map args name others
+    assert "map_settings=scale" in demo
+    detail = map_command(survey, "siren_lambert", "demo", 1, tmp_path / "r", tmp_path / "d",
+                         map_args=["map_settings=detail"])  # fmt: skip
+    assert [c for c in detail if c.startswith("map_settings=")] == ["map_settings=detail"]
     ckpt = map_command(
         survey, "siren_cnn_n2d", "fast", 1, tmp_path / "r", tmp_path / "d", cnn_checkpoint="c"
     )
