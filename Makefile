@@ -136,7 +136,7 @@ lambert-tune: install ## SIREN-Lambert settings sweep on d1 TRAINING lines, one 
 	$(BIN)/python -m studies.lambert_tune $(TUNE) --out outputs/lambert_tune/$(SCALE)
 
 .PHONY: wreck-study
-wreck-study: install ## Do the maps show wrecks? Lambert, CNN-N2d (the shipped CNN), GT-N2d, heights-only on a simulated survey with five objects, the scale's settings vs map_settings=survey (finer SIREN + occlusion term), one fit at a time (~27 min demo) -> outputs/wreck_study/
+wreck-study: install ## Do the maps show wrecks? Lambert, CNN-N2d (the shipped CNN), GT-N2d, heights-only on a simulated survey with five objects, with map_settings=scale, survey (one finer SIREN + occlusion term) and detail (the default: scale + a detail network), one fit at a time (~35 min demo) -> outputs/wreck_study/
 	OMP_NUM_THREADS=1 $(BIN)/python -m studies.wreck_study --scale $(SCALE) --out outputs/wreck_study/$(SCALE) $(ARGS)
 
 .PHONY: valsite-study

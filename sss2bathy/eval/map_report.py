@@ -201,9 +201,9 @@ def import_section(run_dir: Path) -> list[str]:
         ]
     elif log_path.is_file():
         lines.append(
-            "No WARNING in this run's log. A survey already in paths.data_dir is reused, "
-            "not imported again: its import's warnings are in the log of the run that "
-            "imported it; its import counts follow."
+            "No WARNING in this run's log (a survey already in paths.data_dir is reused, "
+            "and its stored import warnings are repeated in the log; one imported by an "
+            "older version stored none). Its import counts follow."
         )
     else:
         lines.append("No map.log in the run folder.")

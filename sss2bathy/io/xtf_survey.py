@@ -18,7 +18,7 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +75,7 @@ __all__ = [
 SUFFIXES = (".xtf", ".jsf")
 
 # Bump when the import changes what it writes, so cached folders are rebuilt.
-IMPORT_VERSION = 4
+IMPORT_VERSION = 5  # 5: the import's WARNINGs stored with the survey
 
 DEFAULTS: dict[str, Any] = {
     "kind": "xtf",
@@ -276,17 +276,53 @@ def _check_one_sonar(stats: Mapping[str, Any], st: Mapping[str, Any]) -> None:
         )
 
 
-def _cached_hash(folder: Path) -> str | None:
+def _cached_metadata(folder: Path) -> dict[str, Any]:
     manifest = folder / "survey.yaml"
     if not manifest.is_file():
-        return None
+        return {}
     try:
         data = yaml.safe_load(manifest.read_text())
     except yaml.YAMLError:
-        return None
+        return {}
     if not isinstance(data, dict):
-        return None
-    return (data.get("metadata") or {}).get("source_hash")
+        return {}
+    meta = data.get("metadata")
+    return meta if isinstance(meta, dict) else {}
+
+
+def _cached_hash(folder: Path) -> str | None:
+    return _cached_metadata(folder).get("source_hash")
+
+
+class _WarningRecorder(logging.Handler):
+    """Keeps the WARNING (and worse) messages logged below ``sss2bathy.io`` while attached."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+#: survey folders whose import warnings this process has already shown (a K-fold map run
+#: reuses its import once per fit: the stored warnings are repeated once, not per fit)
+_SHOWN: set[str] = set()
+
+
+def _repeat_import_warnings(name: str, folder: Path) -> None:
+    """Log a reused import's stored WARNINGs again, once per process and folder: a run on a
+    cached survey says what its import repaired or doubted as plainly as the first run."""
+    key = str(Path(folder).resolve())
+    if key in _SHOWN:
+        return
+    _SHOWN.add(key)
+    stored = _cached_metadata(folder).get("import_warnings")
+    if stored is None:
+        log.info("survey '%s': imported by an older version: its warnings were not stored", name)
+        return
+    for message in stored:
+        log.warning("survey '%s' (stored import): %s", name, message)
 
 
 def _replace_folder(survey: Survey, folder: Path) -> None:
@@ -449,6 +485,7 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
                 problems = [str(err)]
         if not problems:
             log.info("survey '%s': reusing %s (inputs unchanged)", merged["name"], folder)
+            _repeat_import_warnings(merged["name"], folder)
             return folder
         log.warning(
             "survey '%s': cached folder %s is corrupt (%s); importing again",
@@ -475,6 +512,30 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
         "altitude_offset": str(merged["altitude_offset"]),
         "nav_units": str(merged["nav_units"]),
     }
+    # the import's WARNINGs are stored with the survey: a later run that reuses it repeats them
+    recorder = _WarningRecorder()
+    io_log = logging.getLogger("sss2bathy.io")
+    io_log.addHandler(recorder)
+    try:
+        survey = _import_survey(merged, user, files, grid_path, source_hash, read_kwargs)
+    finally:
+        io_log.removeHandler(recorder)
+    survey.metadata["import_warnings"] = list(recorder.messages)
+    _replace_folder(survey, folder)
+    _SHOWN.add(str(folder.resolve()))
+    log.info("survey '%s': %d lines saved to %s", merged["name"], len(survey.lines), folder)
+    return folder
+
+
+def _import_survey(
+    merged: Mapping[str, Any],
+    user: Mapping[str, Any],
+    files: Sequence[Path],
+    grid_path: Path | None,
+    source_hash: str,
+    read_kwargs: Mapping[str, Any],
+) -> Survey:
+    """Read the files (and the grid) of :func:`prepare_xtf_survey` into a :class:`Survey`."""
     sensor = {k: merged[k] for k in SENSOR_KEYS}
     origin: dict[str, Any] | None = None
     lines, stats = [], {}
@@ -564,6 +625,4 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
             }
         ),
     )
-    _replace_folder(survey, folder)
-    log.info("survey '%s': %d lines saved to %s", merged["name"], len(lines), folder)
-    return folder
+    return survey

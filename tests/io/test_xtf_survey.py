@@ -126,6 +126,35 @@ def test_cache_reused_until_inputs_change(tmp_path, xtf_folder):
     assert not [p for p in data.iterdir() if p.name.startswith(".")]  # no temporaries left
 
 
+def test_a_reused_import_repeats_its_stored_warnings_once_per_process(tmp_path, xtf_folder, caplog):
+    import logging
+
+    from sss2bathy.io import xtf_survey
+
+    folder, _ = xtf_folder
+    data = tmp_path / "data"
+    cfg = config(folder, n_bins=16)  # resampled: the reader warns (from N to 16 bins)
+    with caplog.at_level(logging.INFO):
+        out = prepare_xtf_survey(cfg, data)
+    live = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any("resampled to 16 bins" in m for m in live)
+    stored = yaml.safe_load((out / "survey.yaml").read_text())["metadata"]["import_warnings"]
+    assert stored == live  # every WARNING of the import, word for word
+    # the same process (a K-fold run's fold fits): nothing repeated
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        prepare_xtf_survey(cfg, data)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    # a new process (the next run on the cached survey): each stored warning again, once
+    xtf_survey._SHOWN.clear()
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        prepare_xtf_survey(cfg, data)
+        prepare_xtf_survey(cfg, data)
+    again = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert again == [f"survey '{out.name}' (stored import): {m}" for m in stored]
+
+
 def test_glob_files_and_default_split_through_load_survey(tmp_path, xtf_folder):
     folder, _ = xtf_folder
     cfg = config(folder / "L[01].xtf", name="globbed")
