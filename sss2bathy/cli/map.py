@@ -267,14 +267,24 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         # map_settings=survey / detail: the SIREN's omega0 / steps (detail: a detail
         # network's) from the survey's range and extent (cli/map_settings.py), except what
         # the user set in overrides; scale: the scale's own
-        mode = map_settings_choice(cfg)
-        if mode != "scale":
-            from sss2bathy.cli.map_settings import apply_map_settings, scale_of_xtf_files
-
-            user = [str(o) for o in cfg.get("overrides") or []]
-            apply_map_settings(train_cfg, scale_of_xtf_files(survey), user, mode=mode)
         # a tile job (tile.index): the pings of its tile, a survey folder cut from the import
         tile_survey = tile_survey_config(cfg, survey)
+        mode = map_settings_choice(cfg)
+        if mode != "scale":
+            from sss2bathy.cli.map_settings import (
+                apply_map_settings,
+                scale_of_survey,
+                scale_of_xtf_files,
+            )
+
+            user = [str(o) for o in cfg.get("overrides") or []]
+            # a tile's SIREN spans the tile's pings, not the survey's: its omega0 from them
+            scale = (
+                scale_of_xtf_files(survey)
+                if tile_survey is None
+                else scale_of_survey(Path(tile_survey["path"]))
+            )
+            apply_map_settings(train_cfg, scale, user, mode=mode)
         if tile_survey is not None:
             train_cfg.data.survey = tile_survey
     return train_cfg

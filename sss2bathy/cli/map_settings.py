@@ -230,6 +230,15 @@ SIDESCAN_SENSORS = (
 SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
 
 
+def scale_of_survey(folder: Any) -> SurveyScale:
+    """The :class:`SurveyScale` of an imported survey folder (all its lines; a tile job's
+    folder holds the runs of pings its SIREN spans)."""
+    from sss2bathy.survey import Survey
+
+    lines = Survey.load(folder).lines
+    return survey_scale([ln.position for ln in lines], [ln.range_m for ln in lines])
+
+
 #: scales already measured in this process, by files (path, size, mtime) and settings: the
 #: K-fold verdict composes a config per fold fit
 _SCALES: dict[str, SurveyScale] = {}

@@ -92,6 +92,22 @@ def test_plan_covers_the_footprint_and_checks_the_index(tmp_path, tiny_xtf):
     n_cut = sum(ln.n_pings for ln in cut.lines)
     assert 0 < n_cut <= n_all and cut.origin == survey.origin
     assert set(cut.splits["test"]) == {ln.name for ln in cut.lines}
+    # the tile's SIREN spans the tile's pings: its detail omega0 comes from their extent
+    from hydra import initialize_config_dir
+
+    from sss2bathy.cli.map import compose_train_config
+    from sss2bathy.cli.map_settings import choose_map_settings, scale_of_survey
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        train = compose_train_config(cfg, tmp_path / "run", {"scale": "tiny"})
+    assert train.data.survey.path == tile_cfg["path"]
+    tile_scale = scale_of_survey(tile_cfg["path"])
+    whole_scale = scale_of_survey(tmp_path / "data" / survey.name)
+    whole = choose_map_settings(whole_scale, 1.0, None, None, 16)
+    assert max(tile_scale.half_extent_m) < max(whole_scale.half_extent_m)
+    chosen = choose_map_settings(tile_scale, 1.0, None, None, 16)
+    assert train.model.siren.detail_omega0 == pytest.approx(round(chosen.omega0, 3))
+    assert chosen.omega0 < whole.omega0
 
 
 # ------------------------------------------------------------------ fast: the blend
