@@ -271,20 +271,18 @@ def compose_train_config(cfg: DictConfig, run_dir: Path, choices: Mapping[str, A
         tile_survey = tile_survey_config(cfg, survey)
         mode = map_settings_choice(cfg)
         if mode != "scale":
-            from sss2bathy.cli.map_settings import (
-                apply_map_settings,
-                scale_of_survey,
-                scale_of_xtf_files,
-            )
+            from sss2bathy.cli.map_settings import apply_map_settings, scale_of_survey
+            from sss2bathy.data.sources import survey_folder
 
             user = [str(o) for o in cfg.get("overrides") or []]
-            # a tile's SIREN spans the tile's pings, not the survey's: its omega0 from them
-            scale = (
-                scale_of_xtf_files(survey)
+            # the imported survey (imported here if new: its checks come first; reused by
+            # every later fit); a tile's SIREN spans the tile's pings: its omega0 from them
+            folder = (
+                survey_folder(survey, str(cfg.paths.data_dir))
                 if tile_survey is None
-                else scale_of_survey(Path(tile_survey["path"]))
+                else Path(tile_survey["path"])
             )
-            apply_map_settings(train_cfg, scale, user, mode=mode)
+            apply_map_settings(train_cfg, scale_of_survey(folder), user, mode=mode)
         if tile_survey is not None:
             train_cfg.data.survey = tile_survey
     return train_cfg

@@ -43,7 +43,7 @@ A fit without a sidescan sensor model (heights only) keeps the scale's settings:
 would see no data.
 
 Pure functions of numbers (:func:`choose_map_settings`); :func:`survey_scale` measures the
-numbers on lines, :func:`scale_of_xtf_files` on the XTF files of a map config, and
+numbers on lines, :func:`scale_of_survey` on an imported survey folder, and
 :func:`apply_map_settings` writes the settings into a composed ``train`` config, leaving
 every key the user set.
 """
@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -161,17 +161,16 @@ class MapSettings:
         if self.detail:
             out["model.siren._target_"] = "sss2bathy.models.siren.TwoScaleSiren"
             out["model.siren.detail_omega0"] = round(self.omega0, 3)
+            out["model.w_detail"] = DETAIL_W
+            out["model.detail_nadir"] = out["model.heights_on_base"] = True
+            if self.w_shadow > 0:
+                out["model.shadow_on_detail"] = True
         else:
             out["model.siren.omega0"] = round(self.omega0, 3)
         if self.steps_per_epoch is not None:
             out["data.steps_per_epoch"] = int(self.steps_per_epoch)
         if self.w_shadow > 0:
             out["model.w_shadow"] = float(self.w_shadow)
-        if self.detail:
-            out.update({"model.w_detail": DETAIL_W, "model.detail_nadir": True,
-                        "model.heights_on_base": True})  # fmt: skip
-            if self.w_shadow > 0:
-                out["model.shadow_on_detail"] = True
         return out
 
 
@@ -227,69 +226,21 @@ SIDESCAN_SENSORS = (
     "sss2bathy.models.lambertian.LambertianSensorModel",
 )
 
-SENSOR_KEYS = ("tilt_deg", "beam_width_deg", "frequency_hz", "sound_speed_mps")
-
 
 def scale_of_survey(folder: Any) -> SurveyScale:
-    """The :class:`SurveyScale` of an imported survey folder (all its lines; a tile job's
-    folder holds the runs of pings its SIREN spans)."""
+    """The :class:`SurveyScale` of an imported survey folder: all its lines (a tile job's
+    folder holds the runs of pings its SIREN spans), of which only the positions and bin
+    ranges are read (not the intensities)."""
+    from pathlib import Path
+
     from sss2bathy.survey import Survey
 
-    lines = Survey.load(folder).lines
-    return survey_scale([ln.position for ln in lines], [ln.range_m for ln in lines])
-
-
-#: scales already measured in this process, by files (path, size, mtime) and settings: the
-#: K-fold verdict composes a config per fold fit
-_SCALES: dict[str, SurveyScale] = {}
-
-
-def scale_of_xtf_files(survey: Mapping[str, Any]) -> SurveyScale:
-    """The :class:`SurveyScale` of a map config's XTF files (``survey``: the
-    ``data/survey=xtf`` keys): navigation and bin ranges only, nothing is imported (the
-    reader's warnings are the import's to give: not repeated here). Measured once per
-    process for the same files and settings."""
-    import json
-
-    from sss2bathy.io.xtf_survey import resolve_files
-
-    paths = resolve_files(survey["files"])
-    keys = ("n_bins", "crs", "channel_pair", "port_far_first", "missing_attitude", *SENSOR_KEYS)
-    key = json.dumps(
-        [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in paths]
-        + [str(survey.get(k)) for k in keys]
-    )
-    if key not in _SCALES:
-        io_log = logging.getLogger("sss2bathy.io")
-        level = io_log.level
-        io_log.setLevel(logging.ERROR)
-        try:
-            _SCALES[key] = _measure_xtf_scale(paths, survey)
-        finally:
-            io_log.setLevel(level)
-    return _SCALES[key]
-
-
-def _measure_xtf_scale(paths: Sequence[Any], survey: Mapping[str, Any]) -> SurveyScale:
-    from sss2bathy.io.xtf import read_xtf
-
+    folder = Path(folder)
     positions, ranges = [], []
-    origin = None
-    for path in paths:
-        line, stats = read_xtf(
-            path,
-            survey.get("n_bins"),
-            origin=origin,
-            crs=survey.get("crs"),
-            sensor={k: survey.get(k) for k in SENSOR_KEYS},
-            channel_pair=int(survey.get("channel_pair") or 0),
-            port_far_first=bool(survey.get("port_far_first", True)),
-            missing_attitude=str(survey.get("missing_attitude") or "error"),
-            altitude_tolerance_m=None,  # geometry only: the import checks the altitude
-        )
-        origin = origin or stats.get("origin")
-        positions.append(line.position)
-        ranges.append(line.range_m)
+    for name in Survey.read_manifest(folder).get("lines") or []:
+        with np.load(folder / "lines" / f"{name}.npz", allow_pickle=False) as line:
+            positions.append(line["position"])
+            ranges.append(line["range_m"])
     return survey_scale(positions, ranges)
 
 

@@ -290,10 +290,6 @@ def _cached_metadata(folder: Path) -> dict[str, Any]:
     return meta if isinstance(meta, dict) else {}
 
 
-def _cached_hash(folder: Path) -> str | None:
-    return _cached_metadata(folder).get("source_hash")
-
-
 class _WarningRecorder(logging.Handler):
     """Keeps the WARNING (and worse) messages logged below ``sss2bathy.io`` while attached."""
 
@@ -310,14 +306,14 @@ class _WarningRecorder(logging.Handler):
 _SHOWN: set[str] = set()
 
 
-def _repeat_import_warnings(name: str, folder: Path) -> None:
-    """Log a reused import's stored WARNINGs again, once per process and folder: a run on a
-    cached survey says what its import repaired or doubted as plainly as the first run."""
+def _repeat_import_warnings(name: str, folder: Path, stored: Sequence[str] | None) -> None:
+    """Log a reused import's ``stored`` WARNINGs (None: an older import stored none) again,
+    once per process and folder: a run on a cached survey says what its import repaired or
+    doubted as plainly as the first run."""
     key = str(Path(folder).resolve())
     if key in _SHOWN:
         return
     _SHOWN.add(key)
-    stored = _cached_metadata(folder).get("import_warnings")
     if stored is None:
         log.info("survey '%s': imported by an older version: its warnings were not stored", name)
         return
@@ -474,7 +470,8 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
             "grid": file_sha256(grid_path) if grid_path else None,
         }
     )
-    if not force and _cached_hash(folder) == source_hash:
+    cached = _cached_metadata(folder)
+    if not force and cached.get("source_hash") == source_hash:
         problems = folder_digest_problems(folder)
         if problems is None:  # imported before digests: readable -> record its digest
             try:
@@ -485,7 +482,7 @@ def prepare_xtf_survey(cfg: Mapping[str, Any], data_dir: str | Path, force: bool
                 problems = [str(err)]
         if not problems:
             log.info("survey '%s': reusing %s (inputs unchanged)", merged["name"], folder)
-            _repeat_import_warnings(merged["name"], folder)
+            _repeat_import_warnings(merged["name"], folder, cached.get("import_warnings"))
             return folder
         log.warning(
             "survey '%s': cached folder %s is corrupt (%s); importing again",

@@ -566,8 +566,12 @@ class TwoScaleSiren(Siren):
         if hasattr(self, "detail"):  # Siren.__init__ sets the base's frame before D exists
             self._frame_detail()
 
+    def base_height(self, xy: torch.Tensor) -> torch.Tensor:
+        """The base's height ``Phi(x, y)`` alone (m)."""
+        return super().height(xy)
+
     def height(self, xy: torch.Tensor) -> torch.Tensor:
-        return super().height(xy) + self.detail.height(xy)
+        return self.base_height(xy) + self.detail.height(xy)
 
     forward = height
 

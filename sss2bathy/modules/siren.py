@@ -360,7 +360,7 @@ class SirenModule(pl.LightningModule):
         alt = batch["altimeter"]
         if self.heights_on_base:  # the altimeter fits the base; the detail enters detached
             xy = alt[:, :2]
-            z = Siren.height(self.siren, xy) + self.siren.detail.height(xy).detach()
+            z = self.siren.base_height(xy) + self.siren.detail.height(xy).detach()
         else:
             z = self.siren.height(alt[:, :2])
         loss_height = height_loss(z, alt[:, 2])

@@ -17,7 +17,7 @@ from sss2bathy.cli.map_settings import (
     SurveyScale,
     apply_map_settings,
     choose_map_settings,
-    scale_of_xtf_files,
+    scale_of_survey,
     survey_scale,
 )
 from tests.conftest import REALDATA
@@ -164,13 +164,24 @@ def test_apply_detail_builds_a_two_scale_siren_for_sidescan_fits_only():
         apply_map_settings(_map_train_cfg(), scale(), [], mode="fine")
 
 
+def _xtf_survey_cfg(files, **keys):
+    """A map route's ``survey`` config (conf/data/survey/xtf.yaml) of ``files``."""
+    cfg = OmegaConf.load(CONF / "data" / "survey" / "xtf.yaml")
+    cfg.files = str(files)
+    cfg.name = "lines"
+    for key, value in keys.items():
+        cfg[key] = value
+    return cfg
+
+
 @pytest.mark.skipif(
     not REAL_LINE.is_file(), reason=f"{REAL_LINE} absent (set SSS2BATHY_REALDATA=FOLDER)"
 )
-def test_the_real_iver2_line():
-    s = scale_of_xtf_files(
-        {"files": str(REAL_LINE), "n_bins": 512, "tilt_deg": 20.0, "beam_width_deg": 50.0}
-    )
+def test_the_real_iver2_line(tmp_path):
+    from sss2bathy.data.sources import survey_folder
+
+    cfg = _xtf_survey_cfg(REAL_LINE, n_bins=512, tilt_deg=20.0, beam_width_deg=50.0)
+    s = scale_of_survey(survey_folder(cfg, tmp_path / "data"))
     assert s.range_m == pytest.approx(30.0, abs=0.1) and s.bin_m == pytest.approx(
         30 / 512, rel=0.02
     )
@@ -179,14 +190,15 @@ def test_the_real_iver2_line():
     assert 30.0 < chosen.omega0 < 80.0 and chosen.steps_per_epoch == 80
 
 
-def test_the_scale_of_xtf_files_is_measured_once_and_leaves_the_warnings_to_the_import(
+def test_the_scale_of_an_imported_survey_reads_its_lines_and_leaves_the_warnings_to_the_import(
     tmp_path, caplog
 ):
     import importlib.util
     import logging
 
-    from sss2bathy.cli import map_settings
+    from sss2bathy.data.sources import survey_folder
     from sss2bathy.io.xtf import write_xtf
+    from sss2bathy.survey import Survey
 
     spec = importlib.util.spec_from_file_location("io_fixtures", ROOT / "tests/io/conftest.py")
     fixtures = importlib.util.module_from_spec(spec)
@@ -194,26 +206,16 @@ def test_the_scale_of_xtf_files_is_measured_once_and_leaves_the_warnings_to_the_
     path = tmp_path / "L0.xtf"
     write_xtf(fixtures.synthetic_line(n_pings=30, n_bins=64), path, fixtures.ORIGIN)
     # 64 samples read as 32 bins: the reader warns (the import's WARNING, not this check's)
-    survey = {"files": str(path), "n_bins": 32, "tilt_deg": 30.0, "beam_width_deg": 60.0}
-    calls = []
-    measure = map_settings._measure_xtf_scale
-
-    def counted(*args):
-        calls.append(args)
-        return measure(*args)
-
-    map_settings._SCALES.clear()
-    try:
-        map_settings._measure_xtf_scale = counted
-        with caplog.at_level(logging.INFO):
-            first = scale_of_xtf_files(survey)
-            again = scale_of_xtf_files(dict(survey))  # a fold fit's config: the same files
-    finally:
-        map_settings._measure_xtf_scale = measure
-    assert first == again and len(calls) == 1 and first.n_pings == 30
+    cfg = _xtf_survey_cfg(path, n_bins=32, tilt_deg=30.0, beam_width_deg=60.0)
+    folder = survey_folder(cfg, tmp_path / "data")
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        first = scale_of_survey(folder)
+        again = scale_of_survey(folder)  # a fold fit's config: the same survey
+    lines = Survey.load(folder).lines
+    assert (
+        first == again == survey_scale([ln.position for ln in lines], [ln.range_m for ln in lines])
+    )
+    assert first.n_pings == sum(ln.n_pings for ln in lines)
     assert first.range_m == pytest.approx(40.0, rel=0.05)
     assert not [r for r in caplog.records if r.name.startswith("sss2bathy.io")]
-    assert logging.getLogger("sss2bathy.io").level == logging.NOTSET  # restored
-    # other settings are another measurement
-    scale_of_xtf_files({**survey, "n_bins": 64})
-    assert len(map_settings._SCALES) == 2
