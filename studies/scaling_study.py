@@ -439,6 +439,9 @@ def _map_cmd(xtf_dir: Path, data_dir: Path, name: str, run_dir: Path, steps: int
         "sss2bathy.cli.map",
         f"files={xtf_dir}",
         "method=siren_lambert",
+        # the published costs are the smooth SIREN's (the map route's default adds a detail
+        # network: pin the settings so a rerun measures the same fit)
+        "map_settings=scale",
         f"survey.name={name}",
         f"survey.crs={ORIGIN['crs']}",
         f"survey.mbes_grid={xtf_dir / 'mbes.tif'}",

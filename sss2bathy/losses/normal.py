@@ -209,6 +209,61 @@ def lowpass_loss(
     return _masked_mean((p_mean - t_mean).abs(), keep)
 
 
+def lowpass_slope(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    pings: int = 16,
+    bins: int | None = None,
+    min_fraction: float = 0.25,
+) -> torch.Tensor:
+    """Least-squares slope of low-passed prediction on low-passed truth, over all boxes.
+
+    The boxes are :func:`lowpass_loss`'s (the same masked ``pings x bins`` averages, only
+    those at least ``min_fraction`` valid), pooled over the whole batch: ``cov(box(pred),
+    box(target)) / var(box(target))``. 1 = the prediction's slowly varying part follows the
+    truth's at full amplitude; below 1 it is shrunk towards the mean (what a pixel loss
+    rewards where the network is unsure, and what a map integrates into a flattened relief).
+    ``1`` (with grad) where fewer than two boxes count or the truth does not vary.
+    """
+    _check(pred, mask, target)
+    require_number("min_fraction", min_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
+    target = _safe_target(pred, target, mask)
+    p_mean, count = masked_box_mean(pred, mask, pings, bins)
+    t_mean, _ = masked_box_mean(target, mask, pings, bins)
+    width = pred.shape[-1] if bins is None else bins
+    keep = count >= max(1.0, min_fraction * pings * width)
+    n = keep.sum()
+    if int(n) < 2:
+        return pred.sum() * 0.0 + 1.0
+    p = p_mean[keep]
+    t = t_mean[keep]
+    t_c = t - t.mean()
+    var = t_c.square().sum()
+    if not float(var) > 0:
+        return pred.sum() * 0.0 + 1.0
+    return ((p - p.mean()) * t_c).sum() / var
+
+
+def lowpass_gain_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    pings: int = 16,
+    bins: int | None = None,
+    min_fraction: float = 0.25,
+) -> torch.Tensor:
+    """``max(0, 1 - slope)^2`` of :func:`lowpass_slope`: a penalty on shrunk slow slopes.
+
+    Its gradient raises only the part of the prediction that follows the truth (the slope's
+    numerator is the covariance), so, beside a pixel or low-pass error term that penalises
+    noise and overshoot, it removes their reward for predicting towards the mean. 0 at a
+    slope of 1 or more.
+    """
+    slope = lowpass_slope(pred, target, mask, pings, bins, min_fraction)
+    return nn.functional.relu(1.0 - slope).square()
+
+
 def tv_loss(
     pred: torch.Tensor,
     mask: torch.Tensor,
@@ -253,11 +308,14 @@ class NormalLoss(nn.Module):
         lowpass_weight: weight of the low-pass term (:func:`lowpass_loss`), >= 0 (0: off).
         lowpass_pings, lowpass_bins: its box (``lowpass_bins=None``: the window's width,
             i.e. the swath average of ``lowpass_pings`` pings).
+        lowpass_gain_weight: weight of the shrinkage penalty on the same boxes
+            (:func:`lowpass_gain_loss`), >= 0 (0: off).
 
     Calling it with ``(pred, target, mask)`` returns a dict: ``loss`` (the total to
     minimise), the data term under its key in :data:`DATA_TERM_KEYS` (``loss_na`` for the
     normal-aware kind), ``loss_tv`` (the weighted TV sum) and, when its weight is not 0,
-    ``loss_lp`` (the unweighted low-pass term).
+    ``loss_lp`` (the unweighted low-pass term) and ``loss_gain`` (the unweighted shrinkage
+    penalty).
     """
 
     def __init__(
@@ -271,6 +329,7 @@ class NormalLoss(nn.Module):
         lowpass_weight: float = 0.0,
         lowpass_pings: int = 16,
         lowpass_bins: int | None = None,
+        lowpass_gain_weight: float = 0.0,
     ) -> None:
         super().__init__()
         require_choice("kind", kind, KINDS)
@@ -281,13 +340,18 @@ class NormalLoss(nn.Module):
             ("tv_along_track", tv_along_track),
         ):
             require_number(name, value, lambda v: v >= 0, "a weight >= 0")
-        require_number("lowpass_weight", lowpass_weight, lambda v: v >= 0, "a weight >= 0")
+        for name, value in (
+            ("lowpass_weight", lowpass_weight),
+            ("lowpass_gain_weight", lowpass_gain_weight),
+        ):
+            require_number(name, value, lambda v: v >= 0, "a weight >= 0")
         for name, value in (("lowpass_pings", lowpass_pings), ("lowpass_bins", lowpass_bins)):
             if value is None and name == "lowpass_bins":
                 continue
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"loss.{name}: expected an integer >= 1, found {value!r}")
         self.lowpass_weight = float(lowpass_weight)
+        self.lowpass_gain_weight = float(lowpass_gain_weight)
         self.lowpass_pings = int(lowpass_pings)
         self.lowpass_bins = None if lowpass_bins is None else int(lowpass_bins)
         self.kind = kind
@@ -327,6 +391,7 @@ class NormalLoss(nn.Module):
             "lowpass_weight": self.lowpass_weight,
             "lowpass_pings": self.lowpass_pings,
             "lowpass_bins": self.lowpass_bins,
+            "lowpass_gain_weight": self.lowpass_gain_weight,
         }
 
     def data_term(
@@ -347,12 +412,16 @@ class NormalLoss(nn.Module):
         data = self.data_term(pred, target, mask)
         tv = tv_loss(pred, mask, self.tv_across_track, self.tv_along_track)
         out = {"loss": data + tv, DATA_TERM_KEYS[self.kind]: data, "loss_tv": tv}
+        pings = min(self.lowpass_pings, pred.shape[-2])
+        bins = None if self.lowpass_bins is None else min(self.lowpass_bins, pred.shape[-1])
         if self.lowpass_weight > 0:
-            pings = min(self.lowpass_pings, pred.shape[-2])
-            bins = None if self.lowpass_bins is None else min(self.lowpass_bins, pred.shape[-1])
             lp = lowpass_loss(pred, target, mask, pings, bins)
             out["loss"] = out["loss"] + self.lowpass_weight * lp
             out["loss_lp"] = lp
+        if self.lowpass_gain_weight > 0:
+            gain = lowpass_gain_loss(pred, target, mask, pings, bins)
+            out["loss"] = out["loss"] + self.lowpass_gain_weight * gain
+            out["loss_gain"] = gain
         return out
 
     def extra_repr(self) -> str:

@@ -12,6 +12,7 @@ import pytest
 
 from studies.scaling_study import (
     DEMO,
+    _map_cmd,
     long_line,
     power_law,
     siren_projection,
@@ -116,3 +117,10 @@ def test_report_round_trip_and_exponents(tmp_path):
     assert math.isnan(fits["drape"]["b_working"])
     assert 0 < fits["import"]["b_working"] < 1
     assert (tmp_path / "scaling_fits.csv").read_text().startswith("stage,b_time")
+
+
+def test_map_command_pins_the_smooth_siren_settings(tmp_path):
+    # the published costs are the scale settings' fit; the map route's default is detail
+    cmd = _map_cmd(tmp_path / "x", tmp_path / "d", "n", tmp_path / "r", 5)
+    assert "map_settings=scale" in cmd
+    assert "+trainer.max_steps=5" in cmd[-1]
