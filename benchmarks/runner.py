@@ -23,17 +23,27 @@ from typing import Any
 
 import torch
 
-from benchmarks import cnn, demo_stages, draping, finder, projection, simulator, siren_step
+from benchmarks import (
+    cnn,
+    demo_stages,
+    draping,
+    finder,
+    projection,
+    simulator,
+    siren_step,
+    windows,
+)
 from benchmarks.config import project_root
 from benchmarks.machine import cpu_clock, git_revision, machine_info, other_load
 from benchmarks.report import to_markdown, write_report
 from benchmarks.timing import resolve_device
 
-SECTIONS = ("siren_step", "finder", "cnn", "sim", "drape", "demo_stages")
+SECTIONS = ("siren_step", "finder", "cnn", "windows", "sim", "drape", "demo_stages")
 SECTION_TITLES = {
     "siren_step": siren_step.TITLE,
     "finder": finder.TITLE,
     "cnn": cnn.TITLE,
+    "windows": windows.TITLE,
     "sim": simulator.TITLE,
     "drape": draping.TITLE,
     "demo_stages": demo_stages.TITLE,
@@ -43,6 +53,7 @@ QUICK: dict[str, dict[str, Any]] = {
     "siren_step": {"warmup": 1, "repeats": 3, "mm_repeats": 2, "n_batches": 2},
     "finder": {"n_pings": 16, "warmup": 1, "repeats": 3, "gd_repeats": 2},
     "cnn": {"warmup": 1, "repeats": 3},
+    "windows": {"n_lines": 4, "n_batches": 4, "warmup": 1, "repeats": 3},
     "sim": {"n_pings": 24, "warmup": 1, "repeats": 3},
     "drape": {"n_pings": 200, "warmup": 1, "repeats": 3},
 }
@@ -50,6 +61,7 @@ FULL: dict[str, dict[str, Any]] = {
     "siren_step": {"warmup": 2, "repeats": 15, "mm_repeats": 5, "n_batches": 4},
     "finder": {"n_pings": 64, "warmup": 1, "repeats": 7, "gd_repeats": 3},
     "cnn": {"warmup": 1, "repeats": 5},
+    "windows": {"warmup": 1, "repeats": 5},
     "sim": {"n_pings": 96, "warmup": 1, "repeats": 5},
     "drape": {"n_pings": 1000, "warmup": 1, "repeats": 5},
 }
@@ -68,6 +80,8 @@ def _section_runner(
     if name == "cnn":
         cap = {"max_batch": CPU_CNN_MAX_BATCH[mode]} if device.type == "cpu" else {}
         return lambda **kw: cnn.bench_cnn(device=device, root=root, **{**cap, **kw})
+    if name == "windows":
+        return lambda **kw: windows.bench_windows(device=device, **kw)
     if name == "sim":
         return lambda **kw: simulator.bench_sim(root=root, **kw)
     if name == "drape":

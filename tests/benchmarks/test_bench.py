@@ -42,6 +42,16 @@ TINY = {
         "warmup": 1,
         "repeats": 2,
     },
+    "windows": {
+        "n_lines": 2,
+        "n_pings": 40,
+        "n_bins": 64,
+        "window": (16, 32),
+        "batch": 4,
+        "n_batches": 2,
+        "warmup": 0,
+        "repeats": 2,
+    },
     "sim": {"scale": "tiny", "n_pings": 4, "warmup": 0, "repeats": 2},
     "drape": {"n_pings": 12, "n_bins": 32, "cell_m": 4.0, "warmup": 0, "repeats": 2},
 }
@@ -133,6 +143,13 @@ def test_cnn_batch_cap_and_demo_stage_times(doc):
     assert windows["max"] == pytest.approx(1 / step["min"], rel=1e-6)  # batch 1
     stages = {f["name"]: f["median"] for f in doc["sections"]["demo_stages"]["figures"]}
     assert stages == {"cnn": 95.2, "total": 612.0}
+
+
+def test_window_batches_report_their_rate(doc):
+    sec = doc["sections"]["windows"]
+    (rate,) = sec["figures"]
+    assert rate["unit"] == "batches/s" and rate["n"] == 2
+    assert sec["params"]["windows"] > 0 and sec["params"]["batch"] == 4
 
 
 def test_report_files(doc, tmp_path):
