@@ -14,6 +14,11 @@ contain ``valsite``), are refused: the settings this table chooses must never be
 the test lines the paper's tables report.
 
     python -m studies.valsite_study outputs/valsite_study/demo
+
+Runs that differ only in their ``seed`` (the SIREN's initialisation, which alone moves a
+map's MAE by a few centimetres) are also summarised as one row each: the mean over seeds and
+the ratio to SIREN-GT-N2d's mean at the same SIREN settings -- how CNNs (``cnn``: the
+run's ``data.normals.checkpoint``) are compared by the map they give.
 """
 
 from __future__ import annotations
@@ -41,7 +46,27 @@ SETTINGS = (
     ("gamma", "scale.siren.gamma"),
     ("epochs", "trainer.max_epochs"),
     ("line_offset", "model.line_offset"),
+    ("w_height", "model.w_height"),
+    ("cnn", "data.normals.checkpoint"),
+    ("seed", "seed"),
 )
+#: settings a run's config may lack (a model or normals without the key), and their value then
+OPTIONAL = {"line_offset": False, "w_height": "-", "cnn": "-", "seed": "-"}
+#: the settings a seed summary row is keyed by (all but the seed)
+GROUP = tuple(c for c, _ in SETTINGS if c != "seed")
+GT_VARIANT = "siren_gt_n2d"
+
+
+def checkpoint_label(value: Any) -> str:
+    """A CNN checkpoint as a table shows it: a name as it is (``pretrained``, ``latest``),
+    a path as ``<run>/<file>`` when it lies in a run's ``checkpoints/``, else its file name."""
+    text = str(value)
+    if "/" not in text:
+        return text
+    path = Path(text)
+    if path.parent.name == "checkpoints":
+        return f"{path.parent.parent.name}/{path.name}"
+    return path.name
 
 
 def run_settings(config: Mapping[str, Any], where: str = "config") -> dict[str, Any]:
@@ -52,10 +77,11 @@ def run_settings(config: Mapping[str, Any], where: str = "config") -> dict[str, 
     for column, key in SETTINGS:
         value = OmegaConf.select(cfg, key, default="<absent>", throw_on_missing=False)
         if value == "<absent>":
-            if column == "line_offset":  # runs of a model without the key (Lambert: off)
-                value = False
-            else:
+            if column not in OPTIONAL:
                 raise ValueError(f"{where}: {key}: expected a value, found none")
+            value = OPTIONAL[column]  # e.g. Lambert: no line offsets, no CNN
+        if column == "cnn" and value != "-":
+            value = checkpoint_label(value)
         out[column] = "null" if value is None else value
     return out
 
@@ -89,8 +115,41 @@ def study_table(root: str | Path) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: (str(r["variant"]), r["mae"]))
 
 
+def seed_means(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per setting over its seeds (:data:`GROUP`): ``seeds``, the per-seed ``maes``,
+    the means of MAE, gradient CS and held-out altimeter MAE, and ``mae_ratio`` /
+    ``cs_ratio`` to the SIREN-GT-N2d row of the same SIREN settings (NaN without one);
+    best MAE first within a variant."""
+    import math
+
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(tuple(str(r[c]) for c in GROUP), []).append(r)
+    out = []
+    for members in groups.values():
+        members = sorted(members, key=lambda r: str(r["seed"]))
+        n = len(members)
+        out.append(
+            {
+                **{c: members[0][c] for c in GROUP},
+                "seeds": [m["seed"] for m in members],
+                "maes": [m["mae"] for m in members],
+                **{k: sum(m[k] for m in members) / n for k in ("mae", "grad_cs")},
+                "holdout_alt_mae": sum(m["holdout_alt_mae"] for m in members) / n,
+            }
+        )
+    siren = [c for c in GROUP if c not in ("variant", "cnn")]
+    gt = {tuple(str(r[c]) for c in siren): r for r in out if r["variant"] == GT_VARIANT}
+    for r in out:
+        ref = gt.get(tuple(str(r[c]) for c in siren))
+        r["mae_ratio"] = r["mae"] / ref["mae"] if ref else math.nan
+        r["cs_ratio"] = r["grad_cs"] / ref["grad_cs"] if ref else math.nan
+    return sorted(out, key=lambda r: (str(r["variant"]), r["mae"]))
+
+
 def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, validation site") -> str:
-    """Markdown table of :func:`study_table` rows."""
+    """Markdown table of :func:`study_table` rows (and of their :func:`seed_means` when a
+    setting was fitted with more than one seed)."""
     columns = [c for c, _ in SETTINGS]
     md = [
         f"# {title}",
@@ -110,6 +169,28 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, valida
         ),
         "l" * len(columns) + "rrrrrl",
     )
+    means = seed_means(rows)
+    if any(len(r["seeds"]) > 1 for r in means):
+        md += [
+            "",
+            "## Mean over seeds",
+            "",
+            "Runs that differ only in their seed: the mean of their scores, the MAE of each "
+            "seed, and the ratios to SIREN-GT-N2d's means at the same SIREN settings.",
+            "",
+        ]
+        md += markdown_table(
+            [*GROUP, "seeds", "MAE per seed (m)", "MAE (m)", "gradient CS"]
+            + ["held-out alt. MAE (m)", "MAE / GT-N2d", "CS / GT-N2d"],
+            (
+                [*(fmt_cell(r[c]) for c in GROUP), " ".join(map(str, r["seeds"]))]
+                + [" / ".join(f"{v:.3f}" for v in r["maes"]), f"{r['mae']:.3f}"]
+                + [f"{r['grad_cs']:.3f}", f"{r['holdout_alt_mae']:.3f}"]
+                + [f"{r['mae_ratio']:.2f}", f"{r['cs_ratio']:.3f}"]
+                for r in means
+            ),
+            "l" * (len(GROUP) + 1) + "lrrrrr",
+        )
     return "\n".join(md) + "\n"
 
 

@@ -11,7 +11,14 @@ from omegaconf import OmegaConf
 
 from sss2bathy.metrics.bathy import bathy_metrics
 from sss2bathy.survey import BathyGrid, Survey
-from studies.valsite_study import main, run_settings, study_table, to_csv
+from studies.valsite_study import (
+    checkpoint_label,
+    main,
+    run_settings,
+    seed_means,
+    study_table,
+    to_csv,
+)
 
 SHAPE, CELL = (20, 30), 0.5
 SITE = "synthetic_d1_valsite_tiny"
@@ -80,7 +87,12 @@ def test_table_scores_every_run_on_the_common_cells_by_variant(study):
     assert by_run["cnn_offset"]["line_offset"] is True
     assert by_run["lambert"]["line_offset"] is False  # a model without the key: off
     assert by_run["lambert"]["holdout_alt_mae"] == 0.2
-    assert to_csv(rows).splitlines()[0].startswith("variant,lr,gamma,epochs,line_offset,mae")
+    assert (
+        to_csv(rows)
+        .splitlines()[0]
+        .startswith("variant,lr,gamma,epochs,line_offset,w_height,cnn,seed,mae")
+    )
+    assert by_run["lambert"]["cnn"] == "-" and by_run["lambert"]["seed"] == "-"
 
 
 def test_main_writes_markdown_and_csv(study, capsys):
@@ -113,3 +125,37 @@ def test_missing_setting_and_empty_folder_are_clear_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="expected finished SIREN runs"):
         study_table(tmp_path / "empty")
+
+
+def test_seed_means_compare_cnns_by_their_maps_against_gt(tmp_path):
+    truth = _truth()
+    data_dir = tmp_path / "data"
+    Survey(SITE, [], truth, splits={"train": [], "test": []}).save(data_dir / SITE)
+    root = tmp_path / "seeds"
+    region = np.ones(SHAPE, bool)
+    offsets = {"gt": 0.1, "a": 0.2, "b": 0.4}
+    for label, off in offsets.items():
+        for seed, sign in ((42, 1.0), (43, 1.5)):
+            cfg = _config("siren_gt_n2d" if label == "gt" else "siren_cnn_n2d")
+            cfg["seed"] = seed
+            if label != "gt":
+                cfg["data"] = {"normals": {"checkpoint": f"/x/runs/{label}/checkpoints/last.ckpt"}}
+            _run(root, f"{label}_{seed}", data_dir, truth.heights + sign * off, region, cfg)
+    rows = study_table(root)
+    assert {r["cnn"] for r in rows} == {"-", "a/last.ckpt", "b/last.ckpt"}
+    means = {r["cnn"]: r for r in seed_means(rows)}
+    assert means["a/last.ckpt"]["seeds"] == [42, 43]
+    assert means["a/last.ckpt"]["maes"] == pytest.approx([0.2, 0.3])
+    assert means["a/last.ckpt"]["mae"] == pytest.approx(0.25)
+    assert means["a/last.ckpt"]["mae_ratio"] == pytest.approx(2.0)
+    assert means["b/last.ckpt"]["mae_ratio"] == pytest.approx(4.0)
+    assert means["-"]["mae_ratio"] == pytest.approx(1.0)
+    assert main([str(root)]) == 0
+    md = (root / "valsite_study.md").read_text()
+    assert "## Mean over seeds" in md and "| 0.200 / 0.300 | 0.250 |" in md
+
+
+def test_checkpoint_labels():
+    assert checkpoint_label("pretrained") == "pretrained"
+    assert checkpoint_label("outputs/runs/x/ft/checkpoints/last.ckpt") == "ft/last.ckpt"
+    assert checkpoint_label("/tmp/model.safetensors") == "model.safetensors"
