@@ -6,7 +6,9 @@ seabed, the error split by scale (:func:`sss2bathy.eval.cnn_table.scale_split`).
         --survey data/synthetic_d1_valsite_demo --survey data/synthetic_d1_site2_demo \
         --out outputs/studies/cnn_levers
 
-Each ``--run LABEL=RUN_DIR`` is a CNN training run (its ``checkpoints/last.ckpt``; the
+Each ``--run LABEL=RUN_DIR`` is a CNN training run (its ``checkpoints/last.ckpt``, or
+``--ckpt-name``), or ``--run LABEL=FILE`` one checkpoint or exported model (the
+shipped one: ``sss2bathy/pretrained/normal_cnn.safetensors``; the
 constant prediction of its skill is the training mean the run's ``metrics.json`` records, or
 with ``--constant-from FOLDER[:SPLIT]`` the mean draped n_lat of those training lines).
 Each ``--survey FOLDER[:SPLIT]`` is scored on its whole stitched lines (the prediction
@@ -34,7 +36,7 @@ from studies.tables import fmt_cell, markdown_table, to_csv, write_tables
 
 COLUMNS = (
     "run", "survey", "mae", "skill", "lp4x8_mae", "lp16x32_mae", "lp48x96_mae",
-    "lp16x32_share", "line_side_bias", "slope", "lp_slope",
+    "lp16x32_share", "swath16_mae", "line_side_bias", "slope", "lp_slope",
 )  # fmt: skip
 
 
@@ -111,7 +113,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m studies.cnn_levers", description=__doc__.split("\n\n")[0]
     )
-    parser.add_argument("--run", action="append", required=True, help="LABEL=RUN_DIR")
+    parser.add_argument(
+        "--run", action="append", required=True, help="LABEL=RUN_DIR or LABEL=CHECKPOINT_FILE"
+    )
     parser.add_argument("--survey", action="append", required=True, help="FOLDER[:SPLIT]")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--ckpt-name", default="last.ckpt", help="checkpoint in checkpoints/")
@@ -126,12 +130,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"constant prediction: {fixed:+.5f} (mean n_lat of {args.constant_from})")
     runs = []
     for text in args.run:
-        label, sep, folder = text.partition("=")
-        ckpt = Path(folder) / "checkpoints" / args.ckpt_name
+        label, sep, where = text.partition("=")
+        path = Path(where)
+        ckpt = path if path.is_file() else path / "checkpoints" / args.ckpt_name
         if not sep or not ckpt.is_file():
-            print(f"error: --run {text}: expected LABEL=RUN_DIR with {ckpt}", file=sys.stderr)
+            print(
+                f"error: --run {text}: expected LABEL=RUN_DIR with {ckpt} or LABEL=FILE",
+                file=sys.stderr,
+            )
             return 2
-        runs.append((label, ckpt, fixed if fixed is not None else run_constant(Path(folder))))
+        folder = path.parent.parent if path.is_file() else path
+        runs.append((label, ckpt, fixed if fixed is not None else run_constant(folder)))
     rows = []
     for label, ckpt, constant in runs:
         for text in args.survey:
@@ -143,7 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             rows.append({"run": label, "survey": f"{Path(folder).name}:{split or 'all'}", **row})
             print({k: fmt_cell(rows[-1][k]) for k in COLUMNS}, flush=True)
     md = "\n".join(
-        markdown_table(COLUMNS, ([fmt_cell(r[c]) for c in COLUMNS] for r in rows), "ll" + "r" * 9)
+        markdown_table(
+            COLUMNS,
+            ([fmt_cell(r[c]) for c in COLUMNS] for r in rows),
+            "ll" + "r" * (len(COLUMNS) - 2),
+        )
     )
     paths = write_tables(
         args.out, "cnn_levers", md + "\n", to_csv(rows, COLUMNS, ignore_extra=True)

@@ -355,6 +355,8 @@ def write_cnn_bias(
 SCALE_BOXES: tuple[tuple[int, int], ...] = ((4, 8), (16, 32), (48, 96))
 #: the box whose low-passed error is the headline "low-pass" number (and its slope)
 HEADLINE_BOX = (16, 32)
+#: pings of the along-track average of each ping's swath-mean error (``swath{N}_mae``)
+SWATH_PINGS = 16
 SCALE_MD_NAME = "cnn_scale_split.md"
 SCALE_CSV_NAME = "cnn_scale_split.csv"
 
@@ -407,6 +409,9 @@ def scale_split(
       ``boxes`` (:func:`lowpass_waterfall`), over the kept pixels -- the error correlated
       over that many pings and bins, the part a map integrates; ``lp{p}x{b}_share``: that
       over ``mae``;
+    * ``swath16_mae``: the error averaged over each ping's valid bins (pings at least 25 %
+      valid), then over :data:`SWATH_PINGS` pings along track, MAE over those pings -- the
+      error a swath's height profile integrates (the issue's map error followed it);
     * ``line_side_bias``: the pixel-weighted mean of |mean error| per (line, side);
     * ``slope``: least-squares slope of prediction on truth per pixel; ``lp_slope``: the
       same after low-passing both over :data:`HEADLINE_BOX` (below 1: shrunk slopes);
@@ -418,6 +423,7 @@ def scale_split(
         raise ValueError("heads: expected at least one (pred, truth, valid) head, found none")
     errs, preds, truths, lp_p, lp_t = [], [], [], [], []
     lp_errs: dict[tuple[int, int], list] = {tuple(b): [] for b in boxes}
+    swath: list = []
     bias_sum, bias_n = 0.0, 0
     for i, (pred, truth, valid) in enumerate(heads):
         p = np.asarray(pred, dtype=np.float64)
@@ -439,6 +445,11 @@ def scale_split(
         for box in lp_errs:
             lp, keep = lowpass_waterfall(e, m, *box)
             lp_errs[box].append(lp[keep])
+        count = m.sum(axis=1)
+        ping_ok = count >= 0.25 * m.shape[1]
+        ping_mean = np.where(m, e, 0.0).sum(axis=1) / np.maximum(count, 1)
+        lp_ping, kept = lowpass_waterfall(ping_mean[:, None], ping_ok[:, None], SWATH_PINGS, 1)
+        swath.append(lp_ping[kept])
         lpp, keep = lowpass_waterfall(p, m, *HEADLINE_BOX)
         lpt, _ = lowpass_waterfall(t, m, *HEADLINE_BOX)
         lp_p.append(lpp[keep])
@@ -453,6 +464,8 @@ def scale_split(
         lp_mae = float(np.abs(lp).mean()) if lp.size else math.nan
         out[f"lp{pb}x{bb}_mae"] = lp_mae
         out[f"lp{pb}x{bb}_share"] = lp_mae / mae if mae > 0 else math.nan
+    sw = np.concatenate(swath)
+    out[f"swath{SWATH_PINGS}_mae"] = float(np.abs(sw).mean()) if sw.size else math.nan
     out["line_side_bias"] = bias_sum / bias_n
     out["slope"] = _slope(np.concatenate(preds), np.concatenate(truths))
     out["lp_slope"] = _slope(np.concatenate(lp_p), np.concatenate(lp_t))

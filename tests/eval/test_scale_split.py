@@ -47,6 +47,11 @@ def test_bias_per_head_and_shrinkage():
     truth, valid = _truth(2)
     offset = scale_split([(truth + 0.03, truth, valid), (truth - 0.01, truth, valid)])
     assert offset["line_side_bias"] == pytest.approx(0.02, abs=1e-9)
+    # a constant error per head is all swath error; a sign flip across each ping is none
+    assert offset["swath16_mae"] == pytest.approx(0.02, abs=1e-9)
+    flip = np.where(np.arange(truth.shape[1])[None, :] % 2 == 0, 0.05, -0.05)
+    full = np.ones_like(valid)
+    assert scale_split([(truth + flip, truth, full)])["swath16_mae"] < 1e-9
     shrunk = scale_split([(0.6 * truth, truth, valid)])
     assert shrunk["slope"] == pytest.approx(0.6, abs=1e-6)
     assert shrunk["lp_slope"] == pytest.approx(0.6, abs=1e-6)
