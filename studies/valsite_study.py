@@ -147,6 +147,10 @@ def seed_means(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return sorted(out, key=lambda r: (str(r["variant"]), r["mae"]))
 
 
+def _ratio(value: float, digits: int) -> str:
+    return "–" if value != value else f"{value:.{digits}f}"  # NaN: no GT-N2d row to divide by
+
+
 def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, validation site") -> str:
     """Markdown table of :func:`study_table` rows (and of their :func:`seed_means` when a
     setting was fitted with more than one seed)."""
@@ -186,7 +190,7 @@ def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, valida
                 [*(fmt_cell(r[c]) for c in GROUP), " ".join(map(str, r["seeds"]))]
                 + [" / ".join(f"{v:.3f}" for v in r["maes"]), f"{r['mae']:.3f}"]
                 + [f"{r['grad_cs']:.3f}", f"{r['holdout_alt_mae']:.3f}"]
-                + [f"{r['mae_ratio']:.2f}", f"{r['cs_ratio']:.3f}"]
+                + [_ratio(r["mae_ratio"], 2), _ratio(r["cs_ratio"], 3)]
                 for r in means
             ),
             "l" * (len(GROUP) + 1) + "lrrrrr",
