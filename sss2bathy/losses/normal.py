@@ -183,6 +183,25 @@ def masked_box_mean(
     return mean.reshape(out_shape), count.reshape(out_shape)
 
 
+def _kept_boxes(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    pings: int,
+    bins: int | None,
+    min_fraction: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Box averages of ``pred`` and ``target`` over the same valid pixels and the boxes at
+    least ``min_fraction`` valid: ``(pred means, target means, kept)``."""
+    _check(pred, mask, target)
+    require_number("min_fraction", min_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
+    target = _safe_target(pred, target, mask)
+    p_mean, count = masked_box_mean(pred, mask, pings, bins)
+    t_mean, _ = masked_box_mean(target, mask, pings, bins)
+    width = pred.shape[-1] if bins is None else bins
+    return p_mean, t_mean, count >= max(1.0, min_fraction * pings * width)
+
+
 def lowpass_loss(
     pred: torch.Tensor,
     target: torch.Tensor,
@@ -199,13 +218,7 @@ def lowpass_loss(
     This is the error a map integrates (the part of the n_lat error correlated over tens of
     bins and pings); a per-pixel loss barely sees it. ``0`` (with grad) if no box counts.
     """
-    _check(pred, mask, target)
-    require_number("min_fraction", min_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
-    target = _safe_target(pred, target, mask)
-    p_mean, count = masked_box_mean(pred, mask, pings, bins)
-    t_mean, _ = masked_box_mean(target, mask, pings, bins)
-    width = pred.shape[-1] if bins is None else bins
-    keep = count >= max(1.0, min_fraction * pings * width)
+    p_mean, t_mean, keep = _kept_boxes(pred, target, mask, pings, bins, min_fraction)
     return _masked_mean((p_mean - t_mean).abs(), keep)
 
 
@@ -226,15 +239,8 @@ def lowpass_slope(
     rewards where the network is unsure, and what a map integrates into a flattened relief).
     ``1`` (with grad) where fewer than two boxes count or the truth does not vary.
     """
-    _check(pred, mask, target)
-    require_number("min_fraction", min_fraction, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
-    target = _safe_target(pred, target, mask)
-    p_mean, count = masked_box_mean(pred, mask, pings, bins)
-    t_mean, _ = masked_box_mean(target, mask, pings, bins)
-    width = pred.shape[-1] if bins is None else bins
-    keep = count >= max(1.0, min_fraction * pings * width)
-    n = keep.sum()
-    if int(n) < 2:
+    p_mean, t_mean, keep = _kept_boxes(pred, target, mask, pings, bins, min_fraction)
+    if int(keep.sum()) < 2:
         return pred.sum() * 0.0 + 1.0
     p = p_mean[keep]
     t = t_mean[keep]
