@@ -241,13 +241,13 @@ def lowpass_slope(
     """
     p_mean, t_mean, keep = _kept_boxes(pred, target, mask, pings, bins, min_fraction)
     if int(keep.sum()) < 2:
-        return pred.sum() * 0.0 + 1.0
+        return _masked_mean(pred, mask) * 0.0 + 1.0  # connected, never NaN from invalid pixels
     p = p_mean[keep]
     t = t_mean[keep]
     t_c = t - t.mean()
     var = t_c.square().sum()
     if not float(var) > 0:
-        return pred.sum() * 0.0 + 1.0
+        return _masked_mean(pred, mask) * 0.0 + 1.0  # connected, never NaN from invalid pixels
     return ((p - p.mean()) * t_c).sum() / var
 
 

@@ -51,6 +51,10 @@ def test_degenerate_inputs_give_one_with_gradient_and_the_loss_term_is_weighted(
     out.backward()
     none = torch.zeros_like(mask)
     assert float(lowpass_slope(target, target, none, 8, 16)) == 1.0
+    # invalid pixels (inf or NaN there) never reach the value, degenerate or not
+    bad = torch.where(mask, target, torch.full_like(target, float("inf")))
+    assert float(lowpass_slope(bad, flat, mask, 8, 16)) == 1.0
+    assert float(lowpass_slope(bad, target, mask, 8, 16)) == pytest.approx(1.0, abs=1e-5)
     off = NormalLoss(kind="l1")
     assert "loss_gain" not in off(0.5 * target, target, mask)
     on = NormalLoss(kind="l1", lowpass_gain_weight=3.0, lowpass_pings=8, lowpass_bins=16)
