@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -120,8 +121,6 @@ def seed_means(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     the means of MAE, gradient CS and held-out altimeter MAE, and ``mae_ratio`` /
     ``cs_ratio`` to the SIREN-GT-N2d row of the same SIREN settings (NaN without one);
     best MAE first within a variant."""
-    import math
-
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault(tuple(str(r[c]) for c in GROUP), []).append(r)
@@ -148,7 +147,7 @@ def seed_means(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _ratio(value: float, digits: int) -> str:
-    return "–" if value != value else f"{value:.{digits}f}"  # NaN: no GT-N2d row to divide by
+    return "–" if math.isnan(value) else f"{value:.{digits}f}"  # NaN: no GT-N2d row
 
 
 def to_markdown(rows: list[dict[str, Any]], title: str = "SIREN settings, validation site") -> str:

@@ -240,15 +240,16 @@ def lowpass_slope(
     ``1`` (with grad) where fewer than two boxes count or the truth does not vary.
     """
     p_mean, t_mean, keep = _kept_boxes(pred, target, mask, pings, bins, min_fraction)
-    if int(keep.sum()) < 2:
-        return _masked_mean(pred, mask) * 0.0 + 1.0  # connected, never NaN from invalid pixels
-    p = p_mean[keep]
-    t = t_mean[keep]
-    t_c = t - t.mean()
+    # weighted by the kept boxes rather than indexed by them: no host sync in a training step
+    w = keep.to(p_mean.dtype)
+    n = w.sum()
+    t_c = (t_mean - (t_mean * w).sum() / n.clamp_min(1.0)) * w
+    p_c = p_mean - (p_mean * w).sum() / n.clamp_min(1.0)
     var = t_c.square().sum()
-    if not float(var) > 0:
-        return _masked_mean(pred, mask) * 0.0 + 1.0  # connected, never NaN from invalid pixels
-    return ((p - p.mean()) * t_c).sum() / var
+    cov = (p_c * t_c).sum()
+    ok = (n >= 2) & (var > 0)
+    # degenerate: 1, still connected to pred (through the kept boxes only)
+    return torch.where(ok, cov / torch.where(ok, var, torch.ones_like(var)), cov * 0.0 + 1.0)
 
 
 def lowpass_gain_loss(
