@@ -7,6 +7,9 @@
   where the target's ``n_up* = sqrt(1 - n_lat*^2)`` (the up component is non-negative by
   convention, so ``n_lat*`` alone determines the target unit vector).
 * :func:`total_loss` — eq. 7: ``L = L_normal + w_H L_H``.
+* :func:`arc_lowpass` — a moving average of per-bin values along each ping's range arc
+  (ours): the across-track low-frequency part of the normal residual, which the normal
+  sensor can discount (``NormalSensorModel(lowpass_weight=...)``).
 """
 
 from __future__ import annotations
@@ -65,3 +68,44 @@ def total_loss(normal: torch.Tensor, height: torch.Tensor, w_height: float = 1.0
     if w_height < 0:
         raise ValueError(f"w_height: expected a non-negative weight, found {w_height}")
     return normal + w_height * height
+
+
+def arc_lowpass(
+    values: torch.Tensor, ping: torch.Tensor, side: torch.Tensor, bin: torch.Tensor, width: int
+) -> torch.Tensor:
+    """Moving average of ``values`` over ``width`` bins centred on each bin, along its own
+    ping and side, over the bins present only (missing bins neither count nor contribute).
+
+    Args:
+        values: ``(N,)`` per-bin values (no graph is kept: the result is a detached estimate).
+        ping, side, bin: ``(N,)`` long: each value's ping (within the batch), side (0 / 1)
+            and bin index within the side.
+        width: window length in bins (>= 1; odd or even, centred with the extra bin ahead).
+
+    Returns:
+        ``(N,)`` the window average at each bin.
+    """
+    _check_same_shape(values=values, ping=ping, side=side, bin=bin)
+    if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+        raise ValueError(f"width: expected an integer >= 1, found {width!r}")
+    if values.numel() == 0:
+        return values.detach().clone()
+    with torch.no_grad():
+        n_bins = int(bin.max()) + 1
+        rows = int(ping.max()) + 1
+        row = ping * 2 + side
+        flat = row * n_bins + bin
+        sums = torch.zeros(rows * 2 * n_bins, dtype=values.dtype, device=values.device)
+        counts = torch.zeros_like(sums)
+        sums.index_add_(0, flat, values.detach())
+        counts.index_add_(0, flat, torch.ones_like(values))
+        # a box filter along bins as the difference of cumulative sums (padded by zeros)
+        lo, hi = (width - 1) // 2, width // 2
+        pad = (lo + 1, hi)
+
+        def box(grid: torch.Tensor) -> torch.Tensor:
+            c = torch.nn.functional.pad(grid.view(rows * 2, n_bins), pad).cumsum(dim=1)
+            return c[:, width:] - c[:, :-width]
+
+        avg = box(sums) / box(counts).clamp_min(1.0)
+        return avg.reshape(-1)[flat]

@@ -8,6 +8,13 @@ error has a low-frequency part, a bias that is nearly constant along a line's si
 metres; swaths that overlap, seen from both sides, and the altimeter heights constrain
 the offsets, which a SIREN surface cannot otherwise absorb. ``offset_weight`` is an L2
 prior on them. Sidescan only: nothing of the MBES grid is used.
+
+Optionally (``lowpass_weight < 1``) the across-track low-frequency part of the residual
+(SIREN minus target ``n_lat``, a moving average over ``lowpass_bins`` bins along each ping's
+arc, :func:`sss2bathy.losses.siren.arc_lowpass`) pulls with that weight only: the target is
+moved by ``(1 - lowpass_weight)`` of it (detached), so the slowly varying part of a CNN's
+error -- what integrates into height -- is left more to the altimeter and the overlapping
+swaths. 1 is eq. 9 exactly.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from sss2bathy.losses.siren import normal_2d_loss
+from sss2bathy.losses.siren import arc_lowpass, normal_2d_loss
 from sss2bathy.models.sensors import ArcGeometry, SensorModel
 
 
@@ -32,14 +39,35 @@ class NormalSensorModel(SensorModel):
         line_offset: learn an ``n_lat`` offset per (line, side), subtracted from the target
             (module docstring); sized by :meth:`setup_lines`.
         offset_weight: weight of the offsets' mean square added to the loss (>= 0).
+        lowpass_weight: weight in ``[0, 1]`` of the residual's across-track low-pass part
+            (module docstring); 1 = eq. 9.
+        lowpass_bins: the low-pass window along each arc (bins, >= 2).
     """
 
     target_key = "n_lat"
 
-    def __init__(self, line_offset: bool = False, offset_weight: float = 0.0) -> None:
+    def __init__(
+        self,
+        line_offset: bool = False,
+        offset_weight: float = 0.0,
+        lowpass_weight: float = 1.0,
+        lowpass_bins: int = 32,
+    ) -> None:
         super().__init__()
         if not isinstance(line_offset, bool):
             raise ValueError(f"line_offset: expected true or false, found {line_offset!r}")
+        if (
+            isinstance(lowpass_weight, bool)
+            or not isinstance(lowpass_weight, int | float)
+            or not 0.0 <= lowpass_weight <= 1.0
+        ):
+            raise ValueError(
+                f"lowpass_weight: expected a number in [0, 1], found {lowpass_weight!r}"
+            )
+        if isinstance(lowpass_bins, bool) or not isinstance(lowpass_bins, int) or lowpass_bins < 2:
+            raise ValueError(f"lowpass_bins: expected an integer >= 2, found {lowpass_bins!r}")
+        self.lowpass_weight = float(lowpass_weight)
+        self.lowpass_bins = int(lowpass_bins)
         # (n_lines, 2) when learned, sized by setup_lines() (or by a loaded state dict); off:
         # no parameter at all, so checkpoints of fits without offsets keep their keys
         self.register_parameter("line_offset", None)
@@ -104,6 +132,9 @@ class NormalSensorModel(SensorModel):
             prior = self.offset_weight * self.line_offset.pow(2).mean()
             with torch.no_grad():
                 logs["offset_rms"] = self.line_offset.pow(2).mean().sqrt()
+        if self.lowpass_weight < 1.0:
+            low = arc_lowpass(geo.n_lat - target, geo.ping, geo.side, geo.bin, self.lowpass_bins)
+            target = target + (1.0 - self.lowpass_weight) * low
         loss = normal_2d_loss(geo.n_lat, geo.n_up, target)
         with torch.no_grad():
             logs["n_lat_mae"] = (

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from sss2bathy.losses.siren import height_loss, normal_2d_loss, total_loss
+from sss2bathy.losses.siren import arc_lowpass, height_loss, normal_2d_loss, total_loss
 from sss2bathy.models.normal_sensor import NormalSensorModel
 from sss2bathy.models.sensors import ArcGeometry
 from sss2bathy.models.siren import Siren
@@ -166,3 +166,60 @@ def test_height_loss_alone_drives_a_siren_to_a_plane():
     mae = (z - z_true(test_xy)).abs().mean().item()
     assert mae0 > 0.5 and mae < 0.05
     assert torch.allclose(grad.mean(0), torch.tensor(plane[1:]), atol=5e-3)
+
+
+def test_arc_lowpass_averages_along_each_ping_and_side_over_present_bins():
+    # two pings x two sides x 8 bins, bin 3 of ping 0 port missing
+    ping = torch.arange(2).repeat_interleave(16)
+    side = torch.arange(2).repeat_interleave(8).repeat(2)
+    bin = torch.arange(8).repeat(4)
+    keep = ~((ping == 0) & (side == 0) & (bin == 3))
+    values = (ping * 100 + side * 10 + bin).float()
+    out = arc_lowpass(values[keep], ping[keep], side[keep], bin[keep], 3)
+    full = arc_lowpass(values, ping, side, bin, 3)
+    # a linear ramp is its own moving average inside an arc; the ends average what exists
+    assert full[(ping == 1) & (side == 1)].tolist() == pytest.approx(
+        [110.5, 111, 112, 113, 114, 115, 116, 116.5]
+    )
+    # the missing bin neither counts nor contributes; other arcs never leak in
+    port0 = out[:7]  # ping 0, port: bins 0, 1, 2, 4, 5, 6, 7
+    assert port0.tolist() == pytest.approx([0.5, 1.0, 1.5, 4.5, 5.0, 6.0, 6.5])
+    assert torch.equal(out[7:], full[keep][7:])
+    # width 1 is the identity; a window wider than the arc is the arc's mean
+    assert torch.equal(arc_lowpass(values, ping, side, bin, 1), values)
+    wide = arc_lowpass(values, ping, side, bin, 64)
+    assert wide[:8].tolist() == pytest.approx([3.5] * 8)
+    assert arc_lowpass(values[:0], ping[:0], side[:0], bin[:0], 3).numel() == 0
+    with pytest.raises(ValueError, match="width"):
+        arc_lowpass(values, ping, side, bin, 0)
+
+
+def test_normal_sensor_lowpass_weight_discounts_the_slow_part_of_the_residual():
+    """A target off by a constant along an arc (the slow part) costs nothing at weight 0
+    and eq. 9's at weight 1; a target off by alternating signs (the fast part) costs the
+    same at every weight."""
+    n = 64
+    pred = torch.linspace(-0.2, 0.2, n)
+    geo = _geo(pred)
+    geo.bin = torch.arange(n)
+    slow = pred + 0.05
+    fast = pred + 0.05 * (-1.0) ** torch.arange(n)
+    plain = NormalSensorModel()
+    blind = NormalSensorModel(lowpass_weight=0.0, lowpass_bins=8)
+    half = NormalSensorModel(lowpass_weight=0.5, lowpass_bins=8)
+    eq9 = plain.loss(geo, slow)[0].item()
+    assert blind.loss(geo, slow)[0].item() == pytest.approx(0.0, abs=1e-5)
+    assert eq9 > 0.04
+    assert half.loss(geo, slow)[0].item() == pytest.approx(eq9 / 2, rel=0.05)
+    fast_eq9 = plain.loss(geo, fast)[0].item()
+    assert blind.loss(geo, fast)[0].item() == pytest.approx(fast_eq9, rel=0.02)
+    # the pull on the SIREN still flows through its own normals
+    geo.n_lat = pred.clone().requires_grad_(True)
+    geo.n_up = torch.sqrt(1 - geo.n_lat**2)
+    half.loss(geo, slow)[0].backward()
+    assert torch.all(geo.n_lat.grad < 0)  # descent raises the SIREN towards the target
+    for bad in (-0.1, 1.5, True):
+        with pytest.raises(ValueError, match="lowpass_weight"):
+            NormalSensorModel(lowpass_weight=bad)
+    with pytest.raises(ValueError, match="lowpass_bins"):
+        NormalSensorModel(lowpass_bins=1)
