@@ -155,6 +155,17 @@ valsite-study: install ## SIREN settings on the validation site (d1's recipe, se
 		hydra.run.dir=$(VALSITE)/cnn_n2d_line_offset_lr3e-3 $(ARGS)
 	$(BIN)/python -m studies.valsite_study $(VALSITE)
 
+.PHONY: valsite-w-height
+WH_WEIGHTS ?= 0.003 0.01 0.03 0.1 0.3 1 3
+WH_SEEDS ?= 42 43 44
+valsite-w-height: install ## The altimeter weight per sensor on the validation site: GT-N2d, CNN-N2d (demo and shipped CNN), Lambert at WH_WEIGHTS x WH_SEEDS, one fit at a time (~90 min demo) -> outputs/valsite_w_height/
+	$(CNN_IF_NONE)
+	for e in gt_n2d cnn_n2d cnn_n2d_pretrained lambert; do for w in $(WH_WEIGHTS); do for s in $(WH_SEEDS); do \
+		d=outputs/valsite_w_height/$(SCALE)/$${e}_wh$${w}_s$${s}; [ -f $$d/metrics.json ] && continue; \
+		$(VALSITE_TRAIN) experiment=siren_$$e model.w_height=$$w seed=$$s logger=none hydra.run.dir=$$d $(ARGS) || exit 1; \
+	done; done; done
+	$(BIN)/python -m studies.valsite_study outputs/valsite_w_height/$(SCALE)
+
 LC_N_TRAIN ?= 8,16,32
 .PHONY: learning-curve
 learning-curve: install ## CNN test MAE vs training lines / time, one survey, fixed test lines -> outputs/learning_curve/

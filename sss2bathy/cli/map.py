@@ -235,6 +235,10 @@ def train_overrides(cfg: Mapping[str, Any], choices: Mapping[str, Any]) -> list[
         choice = choices.get(group) or default
         if choice is not None:
             groups.append(f"{group}={choice}")
+    # the map route's altimeter weight, before the user's overrides (which win)
+    w_height = cfg.get("w_height")
+    if w_height is not None:
+        groups.append(f"model.w_height={float(w_height)!r}")
     return groups + [str(o) for o in cfg.get("overrides") or []]
 
 

@@ -68,6 +68,12 @@ def test_map_config_picks_the_method_and_the_survey_name():
         "logger=none",
         "trainer.max_epochs=3",
     ]
+    # the map route's altimeter weight comes before the user's overrides, which win
+    assert cfg.w_height == 1.0
+    assert train_overrides({"w_height": 1.0, "overrides": ["model.w_height=0.3"]}, {})[-2:] == [
+        "model.w_height=1.0",
+        "model.w_height=0.3",
+    ]
     assert cfg.holdout.fraction > 0  # every map run is scored on held-out altimeter points
     assert default_survey_name("/data/my lines/") == "xtf_my_lines"
     assert default_survey_name(["/d/L01.xtf", "/d/L02.xtf"]) == "xtf_L01"

@@ -86,6 +86,32 @@ def test_experiment_composes_and_validates(experiment, scale):
     validate_config(cfg)
 
 
+@pytest.mark.parametrize(
+    ("experiment", "sensor"),
+    [
+        ("siren_gt_n2d", "gt_n2d"),
+        ("siren_cnn_n2d", "cnn_n2d"),
+        ("siren_cnn_n2d_pretrained", "cnn_n2d_pretrained"),
+        ("d2_siren_cnn_n2d", "cnn_n2d"),
+        ("d3_siren_cnn_n2d_pretrained", "cnn_n2d_pretrained"),
+        ("siren_lambert", "lambert"),
+        ("siren_lambert_all", "lambert"),
+        ("siren_heights_only", None),
+    ],
+)
+def test_each_sensor_takes_the_altimeter_weight_its_scale_chose(experiment, sensor):
+    """The altimeter weight (w_H) is chosen per sensor on the validation site at demo scale
+    (conf/scale/demo.yaml siren.w_height); the paper scale keeps model.w_height's 1, and
+    heights-only (no sensor term) keeps 1 everywhere."""
+    demo = _resolve(_compose(overrides=[f"experiment={experiment}", "scale=demo"]))
+    chosen = demo["scale"]["siren"]["w_height"]
+    assert set(chosen) == {"gt_n2d", "cnn_n2d", "cnn_n2d_pretrained", "lambert"}
+    expected = 1.0 if sensor is None else chosen[sensor]
+    assert demo["model"]["w_height"] == pytest.approx(expected)
+    paper = _resolve(_compose(overrides=[f"experiment={experiment}", "scale=paper"]))
+    assert paper["model"]["w_height"] == pytest.approx(1.0)
+
+
 @pytest.mark.parametrize("scale", SCALES)
 def test_cnn_experiment_instantiates_at_every_scale(scale):
     """The CNN's test surveys are interpolations to survey presets whose keys fall back to
