@@ -155,6 +155,30 @@ def test_seed_means_compare_cnns_by_their_maps_against_gt(tmp_path):
     assert "## Mean over seeds" in md and "| 0.200 / 0.300 | 0.250 |" in md
 
 
+def test_each_method_is_compared_at_its_own_best_altimeter_weight(tmp_path):
+    """Ratios to SIREN-GT-N2d at the same weight (an override's ``1`` is a config's ``1.0``)
+    and to GT-N2d's best weight: the comparison with each method's setting chosen."""
+    truth = _truth()
+    data_dir = tmp_path / "data"
+    Survey(SITE, [], truth, splits={"train": [], "test": []}).save(data_dir / SITE)
+    root = tmp_path / "weights"
+    region = np.ones(SHAPE, bool)
+    fits = {("siren_gt_n2d", 1.0): 0.2, ("siren_gt_n2d", 0.1): 0.1, ("siren_cnn_n2d", 1): 0.3}
+    for (task, w), off in fits.items():
+        for seed in (42, 43):
+            cfg = _config(task)
+            cfg["model"]["w_height"] = w
+            cfg["seed"] = seed
+            _run(root, f"{task}_{w}_{seed}", data_dir, truth.heights + off, region, cfg)
+    means = {(r["variant"], float(r["w_height"])): r for r in seed_means(study_table(root))}
+    cnn = means[("siren_cnn_n2d", 1.0)]
+    assert cnn["mae_ratio"] == pytest.approx(1.5, rel=1e-4)  # against GT-N2d at the same weight
+    assert cnn["best_mae_ratio"] == pytest.approx(3.0, rel=1e-4)  # against GT-N2d at its best, 0.1
+    assert means[("siren_gt_n2d", 0.1)]["best_mae_ratio"] == pytest.approx(1.0)
+    assert main([str(root)]) == 0
+    assert "| 1.50 | 1.000 | 3.00 | 1.000 |" in (root / "valsite_study.md").read_text()
+
+
 def test_checkpoint_labels():
     assert checkpoint_label("pretrained") == "pretrained"
     assert checkpoint_label("outputs/runs/x/ft/checkpoints/last.ckpt") == "ft/last.ckpt"
