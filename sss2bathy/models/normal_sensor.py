@@ -132,10 +132,11 @@ class NormalSensorModel(SensorModel):
             prior = self.offset_weight * self.line_offset.pow(2).mean()
             with torch.no_grad():
                 logs["offset_rms"] = self.line_offset.pow(2).mean().sqrt()
+        pulled = target  # what the loss pulls towards; the log stays against the target
         if self.lowpass_weight < 1.0:
             low = arc_lowpass(geo.n_lat - target, geo.ping, geo.side, geo.bin, self.lowpass_bins)
-            target = target + (1.0 - self.lowpass_weight) * low
-        loss = normal_2d_loss(geo.n_lat, geo.n_up, target)
+            pulled = target + (1.0 - self.lowpass_weight) * low
+        loss = normal_2d_loss(geo.n_lat, geo.n_up, pulled)
         with torch.no_grad():
             logs["n_lat_mae"] = (
                 (geo.n_lat - target).abs().mean() if target.numel() else loss.detach()

@@ -208,7 +208,9 @@ def test_normal_sensor_lowpass_weight_discounts_the_slow_part_of_the_residual():
     blind = NormalSensorModel(lowpass_weight=0.0, lowpass_bins=8)
     half = NormalSensorModel(lowpass_weight=0.5, lowpass_bins=8)
     eq9 = plain.loss(geo, slow)[0].item()
-    assert blind.loss(geo, slow)[0].item() == pytest.approx(0.0, abs=1e-5)
+    blind_loss, blind_logs = blind.loss(geo, slow)
+    assert blind_loss.item() == pytest.approx(0.0, abs=1e-5)
+    assert blind_logs["n_lat_mae"].item() == pytest.approx(0.05)  # against the target as given
     assert eq9 > 0.04
     assert half.loss(geo, slow)[0].item() == pytest.approx(eq9 / 2, rel=0.05)
     fast_eq9 = plain.loss(geo, fast)[0].item()
