@@ -133,8 +133,9 @@ def seed_means(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 **{c: members[0][c] for c in GROUP},
                 "seeds": [m["seed"] for m in members],
                 "maes": [m["mae"] for m in members],
-                **{k: sum(m[k] for m in members) / n for k in ("mae", "grad_cs")},
-                "holdout_alt_mae": sum(m["holdout_alt_mae"] for m in members) / n,
+                **{
+                    k: sum(m[k] for m in members) / n for k in ("mae", "grad_cs", "holdout_alt_mae")
+                },
             }
         )
     siren = [c for c in GROUP if c not in ("variant", "cnn")]
