@@ -572,13 +572,15 @@ def line_inputs(
     if "relative" in channels:
         relative = np.transpose(relative_channel(intensity, mask), (1, 0, 2))
     r_max = float(np.max(line.range_m))
+    heads = np.transpose(intensity, (1, 0, 2))
     inputs = input_channels(
-        np.transpose(intensity, (1, 0, 2)),
+        heads,
         line.range_m,
         line.altitude_m,
         r_max,
         channels,
         relative=relative,
+        opposite=heads[::-1] if "opposite" in channels else None,
     )
     return np.ascontiguousarray(np.transpose(inputs, (2, 0, 1, 3))), mask  # (2,C,P,B)->(P,2,C,B)
 

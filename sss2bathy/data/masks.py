@@ -25,7 +25,11 @@ intensity, or (``relative``) the intensity relative to its along-track mean at t
 range (:func:`~sss2bathy.data.normalize.relative_intensity`: beam pattern, gain, altitude
 and the sediment's mean angular response divide out), and, optionally, the flat-seabed
 geometry the network can not see within its receptive field (``grazing``:
-``sin g = altitude / r``, 0 before the first return; ``range``: ``r / r_max``).
+``sin g = altitude / r``, 0 before the first return; ``range``: ``r / r_max``), and
+(``opposite``) the other head's normalised intensity at the same ping and range: on a seabed
+tilted across track one head brightens while the other darkens, whatever the beam pattern
+and gain the two heads share, so the pair tells the slow cross-track slope that one head's
+intensity alone confuses with them.
 """
 
 from __future__ import annotations
@@ -56,7 +60,7 @@ from sss2bathy.utils.checks import (
 
 #: CNN input channels :func:`input_channels` can build; the first is an intensity channel
 #: (:data:`INTENSITY_CHANNELS`).
-CHANNELS = ("intensity", "relative", "grazing", "range")
+CHANNELS = ("intensity", "relative", "grazing", "range", "opposite")
 #: The channels that can come first: the intensity the network reads.
 INTENSITY_CHANNELS = ("intensity", "relative")
 DEFAULT_CHANNELS = ("intensity",)
@@ -218,6 +222,7 @@ def input_channels(
     r_max: float,
     channels: Sequence[str] | None = None,
     relative: np.ndarray | None = None,
+    opposite: np.ndarray | None = None,
 ) -> np.ndarray:
     """Stack the CNN's input channels of a waterfall (or a window of one).
 
@@ -230,11 +235,13 @@ def input_channels(
         relative: ``(..., P, B)`` the ``relative`` channel of the same bins
             (:func:`relative_channel` of the whole line, then cut like ``intensity``);
             needed when ``channels`` holds ``relative``.
+        opposite: ``(..., P, B)`` the other head's normalised intensity at the same pings and
+            bins (same range); needed when ``channels`` holds ``opposite``.
 
     Returns:
         ``(..., C, P, B)`` float32: ``intensity``; ``relative``; ``grazing`` = ``altitude / r`` where
         ``r >= altitude`` (the sine of the flat-seabed grazing angle), else 0;
-        ``range`` = ``r / r_max``.
+        ``range`` = ``r / r_max``; ``opposite``.
     """
     channels = check_channels(channels)
     x = np.asarray(intensity, np.float32)
@@ -253,13 +260,17 @@ def input_channels(
             f"relative: expected the 'relative' channel of shape {x.shape} like intensity, "
             f"found {found}"
         )
+    if "opposite" in channels and (opposite is None or np.shape(opposite) != x.shape):
+        found = None if opposite is None else np.shape(opposite)
+        raise ValueError(
+            f"opposite: expected the other head's intensity of shape {x.shape} like intensity, "
+            f"found {found}"
+        )
+    given = {"intensity": x, "relative": relative, "opposite": opposite}
     out = []
     for name in channels:
-        if name == "intensity":
-            out.append(x)
-            continue
-        if name == "relative":
-            out.append(np.asarray(relative, np.float32))
+        if name in given:
+            out.append(np.asarray(given[name], np.float32))
             continue
         if name == "grazing":
             hh = np.nan_to_num(h, nan=0.0)[:, None]

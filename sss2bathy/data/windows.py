@@ -21,7 +21,8 @@ Batches are dicts (``B`` = batch size, ``H`` = window pings, ``W`` = window bins
   (MBES) mask only selects the pixels of the loss;
 * ``inputs [B,C,H,W] float32`` — the network's input channels ``input_channels``
   (:func:`sss2bathy.data.masks.input_channels`: ``intensity`` first, then optionally
-  ``grazing`` = altitude / r on flat seabed and ``range`` = r / r_max);
+  ``grazing`` = altitude / r on flat seabed, ``range`` = r / r_max and ``opposite``, the
+  other head's intensity at the same pings and bins);
 * ``n_lat [B,1,H,W] float32`` — draped head-plane normal, 0 at invalid pixels;
 * ``mask [B,1,H,W] bool`` — True = valid (mask 0 in the draping);
 * ``line [B] long`` — index into the dataset's ``line_names``; ``side [B] long`` (0 port,
@@ -199,8 +200,15 @@ class WindowLine:
                 "range_m (build the line with WindowLine.from_draped)"
             )
         r_max = float(np.max(self.range_m))
+        opp = self.intensity[pings, 1 - side, bins] if "opposite" in self.channels else None
         return input_channels(
-            x, self.range_m[bins], self.altitude_m[pings], r_max, self.channels, relative=rel
+            x,
+            self.range_m[bins],
+            self.altitude_m[pings],
+            r_max,
+            self.channels,
+            relative=rel,
+            opposite=opp,
         )
 
 

@@ -121,6 +121,12 @@ def test_input_channels():
     assert check_channels(["relative"]) == ("relative",)
     with pytest.raises(ValueError, match="relative: expected the 'relative' channel of shape"):
         input_channels(x, r, h, 16.0, ["intensity", "relative"])
+    heads = np.stack([x, x + 10.0])  # (2 heads, P, B): each head's other is the flipped stack
+    out = input_channels(heads, r, h, 16.0, ["intensity", "opposite"], opposite=heads[::-1])
+    np.testing.assert_array_equal(out[0, 1], x + 10.0)
+    np.testing.assert_array_equal(out[1, 1], x)
+    with pytest.raises(ValueError, match="opposite: expected the other head's intensity"):
+        input_channels(x, r, h, 16.0, ["intensity", "opposite"], opposite=x[:1])
 
 
 def test_relative_intensity_divides_out_what_every_range_column_has():

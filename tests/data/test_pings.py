@@ -288,7 +288,13 @@ def test_cnn_normals_from_the_latest_checkpoint(tiny_survey, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "channels", [("intensity",), ("intensity", "grazing", "range"), ("relative", "grazing")]
+    "channels",
+    [
+        ("intensity",),
+        ("intensity", "grazing", "range"),
+        ("relative", "grazing"),
+        ("intensity", "opposite"),
+    ],
 )
 def test_removing_the_grid_changes_no_cnn_input(tiny_survey, tmp_path, channels):
     """SIREN-CNN-N2d's inputs (n_lat, mask, intensity) are the same with and without MBES."""

@@ -235,12 +235,14 @@ def test_datamodule_batches(survey_dir, tmp_path):
     assert next(iter(loaders[1]))["intensity"].shape[1:] == (1, 16, 32)
 
 
-def test_training_inputs_are_the_prediction_inputs(survey_dir, tmp_path):
+@pytest.mark.parametrize(
+    "channels", [["intensity", "grazing", "range"], ["intensity", "opposite", "range"]]
+)
+def test_training_inputs_are_the_prediction_inputs(survey_dir, tmp_path, channels):
     """Training windows hold exactly the inputs predict_normals builds from the sidescan
     alone (sonar-only normalisation, same channels); the draped mask only picks the loss."""
     from sss2bathy.data.cnn_normals import line_inputs
 
-    channels = ["intensity", "grazing", "range"]
     sonar_mask = {"shadow_threshold": 0.1}
     dm = SidescanWindowDataModule(
         survey={"kind": "folder", "path": str(survey_dir)},
@@ -268,6 +270,9 @@ def test_training_inputs_are_the_prediction_inputs(survey_dir, tmp_path):
         if batch["flipped"][i]:
             ref = ref[:, ::-1]
         np.testing.assert_allclose(batch["inputs"][i].numpy(), ref, atol=0)
+        if "opposite" in channels:  # the other head's intensity, same pings and bins
+            other = whole[name][p0 : p0 + 16, 1 - side, 0, b0 : b0 + 32]
+            np.testing.assert_allclose(ref[1], other, atol=0)
     with pytest.raises(ValueError, match="data.input_channels"):
         SidescanWindowDataModule(
             survey={"kind": "folder", "path": str(survey_dir)},
