@@ -166,6 +166,24 @@ valsite-w-height: install ## The altimeter weight per sensor on the validation s
 	done; done; done
 	$(BIN)/python -m studies.valsite_study outputs/valsite_w_height/$(SCALE)
 
+.PHONY: valsite-seabeds
+SEABEDS_N ?= 1 2 4 8
+valsite-seabeds: install ## The demo CNN on SEABEDS_N seabeds of d1's kind (experiment=cnn_seabeds, 20 epochs each), judged by the validation site's map over seeds 42-44, one job at a time (~2 h demo) -> outputs/valsite_seabeds/
+	for n in $(SEABEDS_N); do \
+		list='$${data.survey}'; i=1; for k in b c d e f g h; do [ $$i -lt $$n ] || break; \
+			list="$$list,\$${d1_seabeds.$$k}"; i=$$((i+1)); done; \
+		c=outputs/runs/cnn_seabeds/$(SCALE)/seabeds$$n; \
+		[ -f $$c/checkpoints/last.ckpt ] || $(BIN)/sss2bathy-train experiment=cnn_seabeds scale=$(SCALE) \
+			torch_threads=1 test=false callbacks.model_checkpoint.save_last=true \
+			"data.train_surveys=[$$list]" hydra.run.dir=$$c $(ARGS) || exit 1; \
+		for s in 42 43 44; do d=outputs/valsite_seabeds/$(SCALE)/seabeds$${n}_s$$s; \
+			[ -f $$d/metrics.json ] && continue; \
+			$(VALSITE_TRAIN) experiment=siren_cnn_n2d seed=$$s data.normals.checkpoint=$$c/checkpoints/last.ckpt \
+				logger=none hydra.run.dir=$$d || exit 1; \
+		done; \
+	done
+	$(BIN)/python -m studies.valsite_study outputs/valsite_seabeds/$(SCALE)
+
 LC_N_TRAIN ?= 8,16,32
 .PHONY: learning-curve
 learning-curve: install ## CNN test MAE vs training lines / time, one survey, fixed test lines -> outputs/learning_curve/
