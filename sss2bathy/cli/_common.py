@@ -545,6 +545,38 @@ def _group_options(group: str) -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
 
 
+def collapse_series(names: list[str], at_least: int = 3) -> list[str]:
+    """Sorted ``names`` with each run of ``at_least`` or more that differ only in a last
+    letter (``x_a, x_b, ..., x_l``) shown as one ``x_<a-l>``, so a help stays short.
+
+    >>> collapse_series(["p_a", "p_b", "p_c", "p_base", "q"])
+    ['p_<a-c>', 'p_base', 'q']
+    """
+    by_prefix: dict[str, list[str]] = {}
+    for name in names:
+        m = re.fullmatch(r"(.*_)([a-z])", name)
+        if m:
+            by_prefix.setdefault(m[1], []).append(m[2])
+    series: dict[str, str] = {}
+    for prefix, letters in by_prefix.items():
+        codes = sorted(ord(c) for c in letters)
+        run = [codes[0]]
+        for code in [*codes[1:], None]:
+            if code is not None and code == run[-1] + 1:
+                run.append(code)
+                continue
+            if len(run) >= at_least:
+                label = f"{prefix}<{chr(run[0])}-{chr(run[-1])}>"
+                series.update({f"{prefix}{chr(c)}": label for c in run})
+            run = [] if code is None else [code]
+    out: list[str] = []
+    for name in sorted(names):
+        shown = series.get(name, name)
+        if shown not in out:
+            out.append(shown)
+    return out
+
+
 def default_help(config_name: str, doc: str | None) -> CliHelp:
     """A :class:`CliHelp` from an entry point's module docstring (its first line and its
     ``sss2bathy-...`` example lines) and its config's groups (``conf/<config_name>.yaml``)."""
@@ -567,7 +599,7 @@ def default_help(config_name: str, doc: str | None) -> CliHelp:
                 continue
             options = _group_options(group)
             if options:
-                shown = ", ".join(options)
+                shown = ", ".join(collapse_series(options))
                 keys.append((f"{group}=NAME", f"one of {shown} (default {value or 'none'})"))
     keys.append(("KEY=VALUE", "any key of the composed config (see --cfg job)"))
     return CliHelp(prog, "[KEY=VALUE ...] [-m] [--trace] [--hydra-help]", summary, keys, examples)

@@ -18,6 +18,7 @@ from sss2bathy.cli._common import (
     USER_ERROR_EXIT,
     RenameKeys,
     check_crs_keys,
+    collapse_series,
     log_config,
     os_error_message,
     rename_keys,
@@ -265,3 +266,18 @@ def test_log_messages_spell_keys_as_the_entry_point_does(caplog):
     finally:
         caplog.handler.removeFilter(rename)
     assert caplog.messages == ["resampled to 512 bins (survey.n_bins)", "paths.data.survey.x stays"]
+
+
+def test_collapse_series_shortens_lettered_runs_only():
+    """Runs of three or more names differing in a last letter read as one ``x_<a-l>``; shorter
+    runs, gaps and other names stay as they are, in sorted order."""
+    names = [f"synthetic_pretrain_{c}" for c in "abcdefghijkl"] + ["synthetic_pretrain_base"]
+    assert collapse_series(names + ["xtf", "synthetic_d1"]) == [
+        "synthetic_d1",
+        "synthetic_pretrain_<a-l>",
+        "synthetic_pretrain_base",
+        "xtf",
+    ]
+    assert collapse_series(["s_a", "s_b", "s_d", "s_e", "s_f"]) == ["s_a", "s_b", "s_<d-f>"]
+    assert collapse_series(["s_a", "s_b"]) == ["s_a", "s_b"]
+    assert collapse_series([]) == []
