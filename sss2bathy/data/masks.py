@@ -28,8 +28,9 @@ geometry the network can not see within its receptive field (``grazing``:
 ``sin g = altitude / r``, 0 before the first return; ``range``: ``r / r_max``), and
 (``opposite``) the other head's normalised intensity at the same ping and range: on a seabed
 tilted across track one head brightens while the other darkens, whatever the beam pattern
-and gain the two heads share, so the pair tells the slow cross-track slope that one head's
-intensity alone confuses with them.
+and gain the two heads share, so the pair could tell the slow cross-track slope that one
+head's intensity alone confuses with them (measured: it made the demo's CNN and its map worse,
+docs/studies/cnn_levers.md).
 """
 
 from __future__ import annotations
