@@ -157,10 +157,10 @@ valsite-study: install ## SIREN settings on the validation site (d1's recipe, se
 
 .PHONY: valsite-w-height
 WH_WEIGHTS ?= 0.003 0.01 0.03 0.1 0.3 1 3
-WH_SEEDS ?= 42 43 44
-valsite-w-height: install ## The altimeter weight per sensor on the validation site: GT-N2d, CNN-N2d (demo and shipped CNN), Lambert at WH_WEIGHTS x WH_SEEDS, one fit at a time (~90 min demo) -> outputs/valsite_w_height/
+VALSITE_SEEDS ?= 42 43 44
+valsite-w-height: install ## The altimeter weight per sensor on the validation site: GT-N2d, CNN-N2d (demo and shipped CNN), Lambert at WH_WEIGHTS x VALSITE_SEEDS, one fit at a time (~90 min demo) -> outputs/valsite_w_height/
 	$(CNN_IF_NONE)
-	for e in gt_n2d cnn_n2d cnn_n2d_pretrained lambert; do for w in $(WH_WEIGHTS); do for s in $(WH_SEEDS); do \
+	for e in gt_n2d cnn_n2d cnn_n2d_pretrained lambert; do for w in $(WH_WEIGHTS); do for s in $(VALSITE_SEEDS); do \
 		d=outputs/valsite_w_height/$(SCALE)/$${e}_wh$${w}_s$${s}; [ -f $$d/metrics.json ] && continue; \
 		$(VALSITE_TRAIN) experiment=siren_$$e model.w_height=$$w seed=$$s logger=none hydra.run.dir=$$d $(ARGS) || exit 1; \
 	done; done; done
@@ -168,7 +168,7 @@ valsite-w-height: install ## The altimeter weight per sensor on the validation s
 
 .PHONY: valsite-seabeds
 SEABEDS_N ?= 1 2 4 8
-valsite-seabeds: install ## The demo CNN on SEABEDS_N seabeds of d1's kind (experiment=cnn_seabeds, 20 epochs each), judged by the validation site's map over seeds 42-44, one job at a time (~2 h demo) -> outputs/valsite_seabeds/
+valsite-seabeds: install ## The demo CNN on SEABEDS_N seabeds of d1's kind (experiment=cnn_seabeds, 20 epochs each), judged by the validation site's map over VALSITE_SEEDS, one job at a time (~2 h demo) -> outputs/valsite_seabeds/
 	for n in $(SEABEDS_N); do \
 		list='$${data.survey}'; i=1; for k in b c d e f g h; do [ $$i -lt $$n ] || break; \
 			list="$$list,\$${d1_seabeds.$$k}"; i=$$((i+1)); done; \
@@ -176,7 +176,7 @@ valsite-seabeds: install ## The demo CNN on SEABEDS_N seabeds of d1's kind (expe
 		[ -f $$c/checkpoints/last.ckpt ] || $(BIN)/sss2bathy-train experiment=cnn_seabeds scale=$(SCALE) \
 			torch_threads=1 test=false callbacks.model_checkpoint.save_last=true \
 			"data.train_surveys=[$$list]" hydra.run.dir=$$c $(ARGS) || exit 1; \
-		for s in 42 43 44; do d=outputs/valsite_seabeds/$(SCALE)/seabeds$${n}_s$$s; \
+		for s in $(VALSITE_SEEDS); do d=outputs/valsite_seabeds/$(SCALE)/seabeds$${n}_s$$s; \
 			[ -f $$d/metrics.json ] && continue; \
 			$(VALSITE_TRAIN) experiment=siren_cnn_n2d seed=$$s data.normals.checkpoint=$$c/checkpoints/last.ckpt \
 				logger=none hydra.run.dir=$$d || exit 1; \

@@ -19,6 +19,7 @@ from __future__ import annotations
 import difflib
 import errno
 import functools
+import itertools
 import json
 import logging
 import os
@@ -552,29 +553,20 @@ def collapse_series(names: list[str], at_least: int = 3) -> list[str]:
     >>> collapse_series(["p_a", "p_b", "p_c", "p_base", "q"])
     ['p_<a-c>', 'p_base', 'q']
     """
-    by_prefix: dict[str, list[str]] = {}
+    by_prefix: dict[str, set[int]] = {}
     for name in names:
         m = re.fullmatch(r"(.*_)([a-z])", name)
         if m:
-            by_prefix.setdefault(m[1], []).append(m[2])
+            by_prefix.setdefault(m[1], set()).add(ord(m[2]))
     series: dict[str, str] = {}
-    for prefix, letters in by_prefix.items():
-        codes = sorted(ord(c) for c in letters)
-        run = [codes[0]]
-        for code in [*codes[1:], None]:
-            if code is not None and code == run[-1] + 1:
-                run.append(code)
-                continue
-            if len(run) >= at_least:
-                label = f"{prefix}<{chr(run[0])}-{chr(run[-1])}>"
-                series.update({f"{prefix}{chr(c)}": label for c in run})
-            run = [] if code is None else [code]
-    out: list[str] = []
-    for name in sorted(names):
-        shown = series.get(name, name)
-        if shown not in out:
-            out.append(shown)
-    return out
+    for prefix, codes in by_prefix.items():
+        # consecutive letters share code - rank
+        for _, run in itertools.groupby(enumerate(sorted(codes)), lambda t: t[1] - t[0]):
+            letters = [chr(code) for _, code in run]
+            if len(letters) >= at_least:
+                label = f"{prefix}<{letters[0]}-{letters[-1]}>"
+                series.update({prefix + c: label for c in letters})
+    return list(dict.fromkeys(series.get(name, name) for name in sorted(names)))
 
 
 def default_help(config_name: str, doc: str | None) -> CliHelp:

@@ -255,19 +255,14 @@ def input_channels(
         )
     if not (math.isfinite(r_max) and r_max > 0):
         raise ValueError(f"r_max: expected a positive range (m), found {r_max!r}")
-    if "relative" in channels and (relative is None or np.shape(relative) != x.shape):
-        found = None if relative is None else np.shape(relative)
-        raise ValueError(
-            f"relative: expected the 'relative' channel of shape {x.shape} like intensity, "
-            f"found {found}"
-        )
-    if "opposite" in channels and (opposite is None or np.shape(opposite) != x.shape):
-        found = None if opposite is None else np.shape(opposite)
-        raise ValueError(
-            f"opposite: expected the other head's intensity of shape {x.shape} like intensity, "
-            f"found {found}"
-        )
     given = {"intensity": x, "relative": relative, "opposite": opposite}
+    what = {"relative": "the 'relative' channel", "opposite": "the other head's intensity"}
+    for name, label in what.items():
+        if name in channels and (given[name] is None or np.shape(given[name]) != x.shape):
+            found = None if given[name] is None else np.shape(given[name])
+            raise ValueError(
+                f"{name}: expected {label} of shape {x.shape} like intensity, found {found}"
+            )
     out = []
     for name in channels:
         if name in given:

@@ -303,6 +303,11 @@ def test_extra_input_channels_from_the_checkpoint(tmp_path):
     expected = direct.permute(1, 0, 2).numpy()
     keep = mask == MASK_VALID
     np.testing.assert_allclose(n_lat[keep], expected[keep], atol=1e-6)
+    # the opposite channel of a whole line: each head gets the other head's intensity
+    both, _ = line_inputs(line, ["intensity", "opposite"], None)
+    np.testing.assert_array_equal(both[:, 0, 1], both[:, 1, 0])
+    np.testing.assert_array_equal(both[:, 1, 1], both[:, 0, 0])
+    assert not np.array_equal(both[:, 0, 0], both[:, 1, 0])
     with pytest.raises(ValueError, match="in_channels"):
         NormalCNNModule(
             net=NormalResNet(base_width=2, n_blocks=1),
